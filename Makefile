@@ -1,0 +1,33 @@
+# colgnn: `make demo` (set-up + main job) and `make test` (set-up + tests) work on a fresh clone.
+PY      ?= python3
+VENV    := .venv
+VPY     := $(VENV)/bin/python
+STAMP   := $(VENV)/.setup-done
+PIPQ    := $(VPY) -m pip install --quiet --disable-pip-version-check
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: setup test test-slow demo results clean
+
+setup: $(STAMP)
+
+# torch first, pinned: any other torch request pulls gigabytes of CUDA packages.
+$(STAMP): setup.py setup.cfg requirements.txt
+	test -x $(VPY) || $(PY) -m venv $(VENV)
+	$(PIPQ) --upgrade pip
+	$(PIPQ) torch==2.13.0
+	$(PIPQ) ros-jazzy-rclpy ros-jazzy-common-interfaces ros-jazzy-rmw-fastrtps-cpp
+	$(PIPQ) -r requirements.txt
+	$(PIPQ) -e .
+	touch $(STAMP)
+
+test: setup
+	$(VPY) -m pytest -q
+
+test-slow: setup
+	$(VPY) -m pytest -q -m slow
+
+demo: setup
+	$(VENV)/bin/colgnn demo
+
+clean:
+	rm -rf $(VENV) build install log *.egg-info
