@@ -11,7 +11,6 @@ setup(
     version="0.1.0",
     packages=find_packages(include=["colgnn_core", "colgnn_core.*", "colgnn_ros", "colgnn_ros.*", "msg_tools", "msg_tools.*"]),
     package_data={"colgnn_core": ["scenes/*.toml", "assets/meshes/*", "assets/models/*", "assets/ccd/**/*"]},
-    include_package_data=True,
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -23,7 +22,6 @@ setup(
     maintainer_email="dev@colgnn.invalid",
     description="Collision-aware GNN simulation of tool-object contact, real time on a CPU, with ROS 2 nodes.",
     license="MIT",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "colgnn = colgnn_core.cli:main",

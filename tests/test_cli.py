@@ -1,0 +1,72 @@
+"""The colgnn command line: contract fields and exit code 2 on bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from colgnn_core.cli import main
+from colgnn_core.io import write_poses_csv
+
+CONTRACT_FIELDS = {
+    "name", "dt", "object_bbox_min", "object_bbox_max", "tool_shape", "tool_rest_pose",
+    "workspace_min", "workspace_max", "object_vertices", "object_faces",
+}
+
+
+def test_scenes_json_has_contract_fields(capsys):
+    assert main(["scenes", "--json", "--resolution", "ci"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert sorted(r["name"] for r in rows) == ["cone_bunny", "cylinder_banana", "knife_torus", "sphere_mat"]
+    for r in rows:
+        assert CONTRACT_FIELDS <= set(r)
+        assert r["dt"] == pytest.approx(0.04)
+        assert len(r["tool_rest_pose"]) == 7
+        assert all(lo < hi for lo, hi in zip(r["object_bbox_min"], r["object_bbox_max"]))
+
+
+def test_unknown_scene_exits_2(capsys):
+    assert main(["generate", "--scene", "jelly_spoon", "--out", "unused", "--resolution", "ci"]) == 2
+    err = capsys.readouterr().err
+    assert "jelly_spoon" in err and "sphere_mat" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_module_entry_point_exit_code():
+    proc = subprocess.run([sys.executable, "-m", "colgnn_core", "render", "missing.npz", "--out", "x.png"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "missing.npz" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("t,px,py,pz,qx,qy,qw\n0,0,0,0,0,0,1\n", "missing column"),
+        ("t,px,py,pz,qx,qy,qz,qw\n0,0,0,nan,0,0,0,1\n", "NaN"),
+        ("t,px,py,pz,qx,qy,qz,qw\n0,0,0,0,0,0,0.5,0.5\n", "not unit length"),
+    ],
+)
+def test_generate_malformed_poses_exits_2(tmp_path, capsys, body, message):
+    (tmp_path / "p.csv").write_text(body)
+    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--poses", str(tmp_path / "p.csv")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_generate_pose_outside_workspace_exits_2(tmp_path, capsys):
+    write_poses_csv(tmp_path / "p.csv", np.array([0.0, 0.04]), np.array([[0, 0, 0.3, 0, 0, 0, 1.0], [0, 0, 50.0, 0, 0, 0, 1.0]]))
+    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--poses", str(tmp_path / "p.csv")])
+    assert code == 2
+    assert "workspace" in capsys.readouterr().err
+
+
+def test_generate_unwritable_output_exits_2(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(blocker / "o"), "--sequences", "1", "--frames", "2"])
+    assert code == 2
+    assert "output folder" in capsys.readouterr().err
