@@ -1,0 +1,196 @@
+"""The learned simulator: graph -> normalised features -> GNN -> acceleration -> x_{t+1}.
+
+``Simulator`` is the same module for every variant (full, baseline,
+no-compact); only the losses the training loop adds differ.
+
+* Inputs are normalised with online normalizers (node features, one per edge
+  set); the network predicts the *normalised* acceleration of the object nodes,
+  which is de-normalised and integrated second-order:
+  ``x_{t+1} = 2 x_t - x_{t-1} + a``. Pinned nodes stay at ``x_t``.
+* Training noise (MGN): Gaussian noise of std ``noise_std`` (m) is added to
+  ``x_t`` of free object nodes; the target position is moved by
+  ``(1 - noise_gamma) * noise``, so the target acceleration asks the network to
+  undo a fraction of the corruption (gamma = 0.1 as in MGN's cloth model).
+* Positions stay float64 end to end (graph features, integration); the network
+  itself runs in float32 after normalisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import torch
+from torch import nn
+
+from colgnn_core.errors import InputError
+from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph
+from colgnn_core.learn.graph import (MESH_EDGE_FEATURES, WORLD_EDGE_FEATURES, GraphInputs, GraphTemplate,
+                                     build_graph)
+from colgnn_core.learn.normalizer import Normalizer
+
+EDGE_SETS = {"mesh": MESH_EDGE_FEATURES, "world": WORLD_EDGE_FEATURES}
+
+
+@dataclass
+class ModelConfig:
+    """Model hyper-parameters. Sizes come from the scene's ``[model]`` table; noise is a training setting."""
+
+    latent: int = 128
+    message_passing_steps: int = 15
+    mlp_layers: int = 2
+    world_radius: float = 0.01        # r_W (m)
+    surface_only: bool = False
+    noise_std: float = 0.0            # training noise on x_t (m)
+    noise_gamma: float = 0.1          # fraction of the noise the target does NOT follow back
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise InputError(f"unknown model config keys: {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+    @classmethod
+    def from_scene(cls, scene, **overrides) -> "ModelConfig":
+        """Take the known keys of ``scene.model`` (others, e.g. contact_tests, are not model settings)."""
+        names = {f.name for f in fields(cls)}
+        values = {k: v for k, v in dict(scene.model).items() if k in names}
+        values.update(overrides)
+        return cls.from_dict(values)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """Inputs for one prediction t -> t+1 (torch float64, metres; ``pose_next`` numpy [7] or None)."""
+
+    x_prev: torch.Tensor     # [N,3] object graph nodes at t-1
+    x_t: torch.Tensor        # [N,3] at t
+    tool_t: torch.Tensor     # [M,3] tool vertices (world) at t
+    tool_next: torch.Tensor  # [M,3] at t+1
+    pose_next: np.ndarray | None = None  # [7] tool pose at t+1 (SDF culling, collision losses)
+
+
+def frame_from_sequence(template: GraphTemplate, object_positions: np.ndarray, tool_positions: np.ndarray,
+                        tool_poses: np.ndarray, t: int) -> tuple[Frame, torch.Tensor]:
+    """The transition t -> t+1 of a sequence (arrays as in :class:`colgnn_core.io.Sequence`).
+
+    ``object_positions`` [T,N_mesh,3] holds every mesh vertex; the graph's nodes
+    are picked with ``template.object_nodes``. At t = 0 the object starts at
+    rest (x_{-1} = x_0). Returns ``(frame, x_next [N,3])``, float64 tensors.
+    """
+    if not 0 <= t < object_positions.shape[0] - 1:
+        raise ValueError(f"t={t} outside [0, {object_positions.shape[0] - 1})")
+    nodes = template.object_nodes
+    pos = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
+    x_t = pos(object_positions[t, nodes])
+    x_prev = pos(object_positions[t - 1, nodes]) if t > 0 else x_t
+    frame = Frame(x_prev, x_t, pos(tool_positions[t]), pos(tool_positions[t + 1]), np.asarray(tool_poses[t + 1]))
+    return frame, pos(object_positions[t + 1, nodes])
+
+
+@dataclass
+class TrainingOutputs:
+    """What the losses need from one training frame (object nodes only)."""
+
+    pred_norm: torch.Tensor        # [N,3] network output (normalised acceleration)
+    target_norm: torch.Tensor      # [N,3] normalised target acceleration (noise-corrected)
+    loss_mask: torch.Tensor        # [N] bool, free (non-pinned) object nodes
+    latents: torch.Tensor          # [N,latent] final processor latents (KL term)
+    x_t: torch.Tensor              # [N,3] input positions at t (with noise) float64
+    x_next_pred: torch.Tensor      # [N,3] predicted positions at t+1, float64, differentiable
+    x_next_random: torch.Tensor | None  # [N,3] positions decoded from z ~ N(0,I) (L_compact), or None
+    graph: GraphInputs
+
+
+class Simulator(nn.Module):
+    """Learned simulator for one scene's object mesh and tool."""
+
+    def __init__(self, template: GraphTemplate, config: ModelConfig):
+        super().__init__()
+        self.template = template
+        self.config = config
+        self.node_normalizer = Normalizer(template.node_feature_size)
+        self.edge_normalizers = nn.ModuleDict({name: Normalizer(size) for name, size in EDGE_SETS.items()})
+        self.output_normalizer = Normalizer(3)
+        self.core = EncodeProcessDecode(template.node_feature_size, EDGE_SETS, 3, latent=config.latent,
+                                        message_passing_steps=config.message_passing_steps,
+                                        mlp_layers=config.mlp_layers)
+
+    # -- pieces -----------------------------------------------------------------------------------------------
+    def build_graph(self, frame: Frame) -> GraphInputs:
+        return build_graph(self.template, frame.x_t, frame.x_prev, frame.tool_t, frame.tool_next, frame.pose_next)
+
+    def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> MultiGraph:
+        """Normalise raw features (optionally accumulating statistics) and cast to the network's float32."""
+        nodes = self.node_normalizer(g.node_features, accumulate).float()
+        edges = {}
+        for name, es in (("mesh", g.mesh), ("world", g.world)):
+            feats = self.edge_normalizers[name](es.features, accumulate).float()
+            edges[name] = EdgeSet(feats, es.senders, es.receivers)
+        return MultiGraph(nodes, edges)
+
+    def network(self, g: GraphInputs, accumulate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised acceleration [N,3] and final processor latents [N,latent] of the object nodes."""
+        latent_graph = self.core.process(self.core.encode(self.normalise_graph(g, accumulate)))
+        latents = latent_graph.node_features[: g.num_object_nodes]  # tool nodes need no decoding
+        return self.core.decode(latents), latents
+
+    def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
+        """De-normalise the acceleration and step: ``x_{t+1} = 2 x_t - x_{t-1} + a``; pinned nodes keep x_t."""
+        accel = self.output_normalizer.inverse(pred_norm.to(x_t.dtype))
+        x_next = 2.0 * x_t - x_prev + accel
+        if self.template.num_node_types == 3:
+            x_next = torch.where(self.template.pinned[:, None], x_t, x_next)
+        return x_next
+
+    def decode_latent(self, z: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
+        """Positions at t+1 decoded from latents ``z`` [N,latent] instead of the processor's (L_compact)."""
+        return self.integrate(self.core.decode(z), x_t, x_prev)
+
+    # -- entry points -----------------------------------------------------------------------------------------
+    def predict(self, frame: Frame) -> torch.Tensor:
+        """Object graph-node positions at t+1 [N,3] (float64). Statistics are not updated."""
+        pred_norm, _ = self.network(self.build_graph(frame))
+        return self.integrate(pred_norm, frame.x_t, frame.x_prev)
+
+    def training_outputs(self, frame: Frame, x_next: torch.Tensor, generator: torch.Generator | None = None,
+                         noise: bool = True, accumulate: bool = True, random_latent: bool = False) -> TrainingOutputs:
+        """Outputs for the losses on one ground-truth transition (x_prev, x_t) -> ``x_next`` [N,3].
+
+        ``generator`` drives the training noise and the random latents (a fixed seed gives the same run).
+        """
+        free = ~self.template.pinned
+        x_t = frame.x_t
+        target_pos = x_next
+        if noise and self.config.noise_std > 0:
+            eps = torch.randn(x_t.shape, generator=generator, dtype=x_t.dtype) * self.config.noise_std
+            eps = eps * free[:, None].to(x_t.dtype)
+            x_t = x_t + eps
+            target_pos = x_next + (1.0 - self.config.noise_gamma) * eps
+        noisy = Frame(frame.x_prev, x_t, frame.tool_t, frame.tool_next, frame.pose_next)
+        g = self.build_graph(noisy)
+        pred_norm, latents = self.network(g, accumulate=accumulate)
+        target_accel = target_pos - 2.0 * x_t + frame.x_prev
+        if accumulate:
+            self.output_normalizer.accumulate(target_accel[free])
+        target_norm = self.output_normalizer(target_accel).float()
+        x_next_pred = self.integrate(pred_norm, x_t, frame.x_prev)
+        x_next_random = None
+        if random_latent:
+            z = torch.randn(latents.shape, generator=generator, dtype=latents.dtype)
+            x_next_random = self.decode_latent(z, x_t, frame.x_prev)
+        return TrainingOutputs(pred_norm, target_norm, free, latents, x_t, x_next_pred, x_next_random, g)
+
+    def forward(self, frame: Frame, x_next: torch.Tensor | None = None, **kwargs):
+        """``predict(frame)``, or ``training_outputs(frame, x_next, **kwargs)`` when a target is given.
+
+        One entry point so that a DistributedDataParallel wrapper sees every training computation.
+        """
+        if x_next is None:
+            return self.predict(frame)
+        return self.training_outputs(frame, x_next, **kwargs)
