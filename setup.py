@@ -25,6 +25,7 @@ setup(
     entry_points={
         "console_scripts": [
             "colgnn = colgnn_core.cli:main",
+            "pose_publisher = colgnn_ros.pose_publisher_node:main",
         ],
     },
 )

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -23,8 +22,6 @@ rclpy = pytest.importorskip("rclpy")
 from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import Pose, PoseStamped  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from std_msgs.msg import Int32MultiArray  # noqa: E402
@@ -77,45 +74,7 @@ def random_mesh(rng: np.random.Generator, n: int, f: int) -> tuple[np.ndarray, n
 
 # ----------------------------------------------------------------------------- ROS fixtures
 
-@pytest.fixture(scope="module")
-def ros():
-    """A private rclpy context on a random domain, localhost discovery only."""
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    domain = random.SystemRandom().randint(40, 99)
-    os.environ["ROS_DOMAIN_ID"] = str(domain)
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    executor = SingleThreadedExecutor(context=ctx)
-    try:
-        yield ctx, executor, domain
-    finally:
-        executor.shutdown()
-        rclpy.shutdown(context=ctx)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-def spin_until(executor, cond, timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        executor.spin_once(timeout_sec=0.02)
-    return True
-
-
-@pytest.fixture
-def node(ros, request):
-    ctx, executor, _ = ros
-    n = rclpy.create_node(f"msg_tools_test_{request.node.name.split('[')[0]}", context=ctx)
-    executor.add_node(n)
-    yield n
-    executor.remove_node(n)
-    n.destroy_node()
+from rostest_utils import node, ros, spin_until  # noqa: E402,F401  (pytest fixtures, shared with the colgnn_ros tests)
 
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)

@@ -1,0 +1,211 @@
+"""What the colgnn_ros nodes share: QoS profiles, parameters, and the process shell.
+
+- QoS (ARCHITECTURE.md, real-time path): tool poses are best-effort with depth 1 (only the newest
+  pose matters, a late pose is worthless); outputs (markers, counts, diagnostics) are reliable, as
+  RViz subscribes to markers.
+- Parameters are described once as :class:`ParamSpec` rows, declared with rcl_interfaces
+  descriptors (ranges, read-only, a description each) by :func:`declare_parameters`, and the same
+  rows print the ``--help`` text. A bad value raises :class:`colgnn_core.errors.InputError`.
+- :func:`run_node` is the ``main`` of a node process: it initialises rclpy, builds the node, spins
+  it until the node reports it is done or SIGINT/SIGTERM arrives, and returns the exit code
+  (0 = finished or stopped by a signal, 2 = bad parameters, with one error line naming the problem).
+
+Signals: ``rclpy.init`` installs rclpy's SIGINT and SIGTERM handlers (``SignalHandlerOptions.ALL``).
+They shut the *default* context down from the signal handler itself, which wakes the executor's
+wait at once; the executor then raises ``ExternalShutdownException`` and :func:`run_node` tears the
+node down and returns 0. (They do not shut down a private ``Context``: there SIGTERM kills the
+process with 143 and SIGINT goes unanswered, so a node process uses the default context.) A signal
+that arrives while the node is being built shuts the context down too; the construction error that
+follows is recognised as a shutdown, not a failure. Before ``rclpy.init`` (interpreter start-up and
+imports, well under a second) a SIGTERM still ends the process the default way.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+
+from colgnn_core.errors import InputError
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+
+#: Tool poses: only the newest matters; a dropped pose is replaced by the next one.
+POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                      reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+#: Markers, collision counts, diagnostics: reliable (RViz's default for markers).
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                        reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+ParamValue = bool | int | float | str
+
+_TYPES: dict[type, tuple[int, str]] = {
+    bool: (ParameterType.PARAMETER_BOOL, "bool"),
+    int: (ParameterType.PARAMETER_INTEGER, "integer"),
+    float: (ParameterType.PARAMETER_DOUBLE, "double"),
+    str: (ParameterType.PARAMETER_STRING, "string"),
+}
+_EXAMPLES = {bool: "true", int: "10", float: "25.0", str: "text"}
+# rclpy declares these itself; a node never lists them.
+_BUILTIN_PARAMETERS = ("use_sim_time",)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter: name, default (its Python type is the parameter type), description.
+
+    ``range`` (inclusive) applies to int and float parameters; ``choices`` to strings. Parameters
+    are read-only by default: the nodes read them once at start-up, so a later
+    ``ros2 param set`` is refused instead of silently ignored.
+    """
+
+    name: str
+    default: ParamValue
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] | None = None
+    read_only: bool = True
+
+    @property
+    def py_type(self) -> type:
+        return type(self.default)  # bool before int: type(True) is bool
+
+    @property
+    def type_name(self) -> str:
+        return _TYPES[self.py_type][1]
+
+    def constraint_text(self) -> str:
+        if self.choices:
+            return "one of " + "|".join(self.choices)
+        if self.range is not None:
+            lo, hi = self.range
+            return f"in [{int(lo)}, {int(hi)}]" if self.py_type is int else f"in [{lo:g}, {hi:g}]"
+        return ""
+
+    def descriptor(self) -> ParameterDescriptor:
+        d = ParameterDescriptor(name=self.name, type=_TYPES[self.py_type][0], description=self.description,
+                                additional_constraints=self.constraint_text(), read_only=self.read_only)
+        if self.range is not None and self.py_type is float:
+            d.floating_point_range = [FloatingPointRange(from_value=float(self.range[0]),
+                                                         to_value=float(self.range[1]), step=0.0)]
+        elif self.range is not None and self.py_type is int:
+            d.integer_range = [IntegerRange(from_value=int(self.range[0]), to_value=int(self.range[1]), step=1)]
+        return d
+
+
+def _override_value(node: Node, name: str) -> object:
+    # rclpy keeps the command-line / params-file values here; there is no public accessor.
+    p = getattr(node, "_parameter_overrides", {}).get(name)
+    return "?" if p is None else p.value
+
+
+def declare_parameters(node: Node, specs: Sequence[ParamSpec]) -> dict[str, ParamValue]:
+    """Declare ``specs`` on ``node`` with descriptors; return ``{name: value}``.
+
+    Raises InputError naming the parameter for a wrong type, a value out of range or not among the
+    choices. Overrides for names the node does not declare are logged as a warning (a shared
+    params file may hold other nodes' parameters), listing the valid names.
+    """
+    names = [s.name for s in specs]
+    overrides = getattr(node, "_parameter_overrides", {})
+    unknown = sorted(n for n in overrides
+                     if n not in names and n not in _BUILTIN_PARAMETERS and not n.startswith("qos_overrides."))
+    if unknown:
+        node.get_logger().warning(f"ignoring unknown parameter(s) {', '.join(unknown)}; "
+                                  f"this node's parameters: {', '.join(names)}")
+    values: dict[str, ParamValue] = {}
+    for s in specs:
+        try:
+            value = node.declare_parameter(s.name, s.default, s.descriptor()).value
+        except InvalidParameterTypeException:
+            got = _override_value(node, s.name)
+            raise InputError(f"parameter {s.name!r} must be a {s.type_name} (e.g. {s.name}:={_EXAMPLES[s.py_type]}), "
+                             f"got {got!r} ({type(got).__name__})") from None
+        except InvalidParameterValueException:
+            raise InputError(f"parameter {s.name!r} must be {s.constraint_text()}, "
+                             f"got {_override_value(node, s.name)!r}") from None
+        if s.choices and value not in s.choices:
+            raise InputError(f"parameter {s.name!r} must be {s.constraint_text()}, got {value!r}")
+        values[s.name] = value
+    return values
+
+
+def format_help(prog: str, summary: str, specs: Sequence[ParamSpec]) -> str:
+    """The ``--help`` text: usage, summary and one line per parameter."""
+    lines = [f"usage: {prog} [--ros-args -p NAME:=VALUE ...]", "", summary, "", "parameters:"]
+    for s in specs:
+        extra = s.constraint_text()
+        lines.append(f"  {s.name} ({s.type_name}, default {s.default!r}{'; ' + extra if extra else ''})")
+        lines.append(f"      {s.description}")
+    return "\n".join(lines)
+
+
+def spin(node: Node, done: Future | None = None) -> None:
+    """Spin ``node`` until ``done`` completes (forever if None) or its context is shut down.
+
+    Raises ExternalShutdownException (or KeyboardInterrupt) when a signal ends it.
+    """
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        if done is None:
+            executor.spin()
+        else:
+            executor.spin_until_future_complete(done)
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+
+
+def run_node(make_node: Callable[[], Node], *, prog: str, summary: str, specs: Sequence[ParamSpec],
+             args: Sequence[str] | None = None) -> int:
+    """Main of a node process; returns the exit code (0 done/signal, 2 bad input).
+
+    ``make_node()`` builds the node in rclpy's default context (raising InputError for bad
+    parameters); if the node has a ``done`` Future attribute, the process ends when it completes.
+    ``args`` is an argv like sys.argv (program name first; the default). ``-h``/``--help`` prints :func:`format_help` without starting
+    ROS; other non-ROS arguments are an error.
+    """
+    argv = list(sys.argv if args is None else args)
+    logger = rclpy.logging.get_logger(prog)
+    try:
+        extra = rclpy.utilities.remove_ros_args(argv)[1:]
+    except Exception as exc:  # rclpy's RCLInvalidROSArgsError, e.g. "-p name:=" without a value
+        logger.error(f"bad ROS arguments: {str(exc).splitlines()[0]}")
+        return EXIT_BAD_INPUT
+    if any(a in ("-h", "--help") for a in extra):
+        print(format_help(prog, summary, specs))
+        return EXIT_OK
+    if extra:
+        logger.error(f"unexpected argument(s) {' '.join(extra)}; set parameters with --ros-args -p NAME:=VALUE "
+                     f"(see {prog} --help)")
+        return EXIT_BAD_INPUT
+    # The default context: rclpy's signal handlers shut down only that one (a private Context
+    # would leave SIGTERM to kill the process and SIGINT unanswered).
+    rclpy.init(args=argv)
+    node: Node | None = None
+    try:
+        node = make_node()
+        spin(node, getattr(node, "done", None))
+        return EXIT_OK
+    except InputError as exc:
+        logger.error(str(exc))
+        return EXIT_BAD_INPUT
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return EXIT_OK
+    except Exception:
+        if not rclpy.ok():  # a signal shut the context down while the node was being built
+            return EXIT_OK
+        raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
