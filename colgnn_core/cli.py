@@ -73,6 +73,47 @@ def cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from colgnn_core.learn.train import TrainConfig, train
+
+    config = None
+    if args.ccd_form is not None or args.model is not None:
+        config = TrainConfig()
+        if args.ccd_form is not None:
+            config.ccd_form = args.ccd_form
+        if args.model is not None:
+            latent, steps, layers = args.model
+            config.model = {**config.model, "latent": latent, "message_passing_steps": steps, "mlp_layers": layers}
+    result = train(args.scene, args.data, args.out, variant=args.variant, resume=args.resume, steps=args.steps,
+                   seed=args.seed, threads=args.threads, config=config, resolution=args.resolution,
+                   time_budget_s=args.time_budget, progress=not args.quiet)
+    print(f"{result.stopped}: step {result.step}/{result.steps} in {result.wall_s:.0f} s -> {result.checkpoint}")
+    return 0
+
+
+def cmd_rollout(args: argparse.Namespace) -> int:
+    from colgnn_core.io import read_poses_csv, save_sequence
+    from colgnn_core.rollout import rollout
+
+    _, poses = read_poses_csv(args.poses)
+    seq = rollout(args.checkpoint or args.scene, poses, correction=not args.no_correction, limits=args.limits,
+                  progress=not args.quiet)
+    save_sequence(args.out, seq)
+    print(f"wrote {args.out}: {seq.frames} frames")
+    return 0
+
+
+def _model_size(text: str) -> tuple[int, int, int]:
+    """Parse ``LATENT/STEPS/LAYERS`` (e.g. 32/5/1)."""
+    try:
+        values = tuple(int(v) for v in text.split("/"))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"model size must look like LATENT/STEPS/LAYERS, got {text!r}") from exc
+    if len(values) != 3 or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"model size must be three positive integers LATENT/STEPS/LAYERS, got {text!r}")
+    return values
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from colgnn_core.render import render_file
 
@@ -136,6 +177,34 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--poses", default=None, help="simulate this poses CSV instead of the scene's family")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     handlers["generate"] = cmd_generate
+
+    p = sub.add_parser("train", help="train a model on a generated dataset")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--data", required=True, help="dataset folder made by `colgnn generate`")
+    p.add_argument("--out", required=True, help="checkpoint file (.pt), written atomically every N steps")
+    p.add_argument("--variant", choices=("full", "baseline", "no-compact", "subspace"), default="full")
+    p.add_argument("--resume", action="store_true", help="continue the run stored in --out")
+    p.add_argument("--steps", type=_positive, default=None, help="total training steps")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=_positive, default=None, help="torch threads")
+    p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M", help="latent/message-passing steps/MLP layers")
+    p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None, help="reduction of L_ccd (paper: max)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS", help="stop (with a checkpoint) after this long")
+    p.add_argument("--resolution", choices=("ci", "full"), default=None, help="default: from the dataset manifest")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    handlers["train"] = cmd_train
+
+    p = sub.add_parser("rollout", help="roll a model out over a poses CSV")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint")
+    src.add_argument("--scene", help="use the shipped model of this scene")
+    p.add_argument("--poses", required=True, help="CSV with t,px,py,pz,qx,qy,qz,qw")
+    p.add_argument("--out", required=True, help="rollout .npz")
+    p.add_argument("--no-correction", action="store_true", help="the raw network, without the collision-aware correction")
+    p.add_argument("--limits", choices=("none", "data"), default="none",
+                   help="'data': cap per-step motion and distance from rest by the training data's extremes (counted)")
+    p.add_argument("--quiet", action="store_true")
+    handlers["rollout"] = cmd_rollout
 
     p = sub.add_parser("render", help="render a sequence or rollout file")
     p.add_argument("file")

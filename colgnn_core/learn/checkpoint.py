@@ -101,6 +101,7 @@ def save_checkpoint(path: str | os.PathLike, simulator: Simulator, meta: Checkpo
     payload = {
         "format": FORMAT,
         "version": VERSION,
+        "kind": getattr(simulator, "checkpoint_kind", "gnn"),  # 'gnn' (Simulator) or 'subspace' (baseline)
         "meta": asdict(meta),
         "config": simulator.config.to_dict(),
         "model": simulator.state_dict(),
@@ -131,7 +132,10 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise InputError(f"{path}: checkpoint version {payload['version']} is not supported (expected {VERSION})")
     try:
         CheckpointMeta(**payload["meta"])
-        ModelConfig.from_dict(payload["config"])
+        if payload.get("kind", "gnn") == "gnn":
+            ModelConfig.from_dict(payload["config"])
+        elif payload["kind"] != "subspace":
+            raise InputError(f"unknown model kind {payload['kind']!r}")
     except (TypeError, InputError) as exc:
         raise InputError(f"{path}: bad checkpoint header: {exc}") from exc
     return payload
@@ -176,6 +180,12 @@ def load_checkpoint(path: str | os.PathLike, scene=None) -> LoadedCheckpoint:
         from colgnn_core.scenes import load_scene
         scene = load_scene(meta.scene, meta.resolution)
     check_compatible(meta, scene.name, scene.object.fingerprint(), float(scene.dt), source=str(path))
+    if payload.get("kind", "gnn") == "subspace":  # the Holden et al. baseline: same file format and checks
+        from colgnn_core.learn.subspace import subspace_from_payload
+
+        sub = subspace_from_payload(payload, scene, source=str(path))
+        return LoadedCheckpoint(sub, meta, sub.config, payload.get("optimizer"), payload.get("scheduler"),
+                                payload.get("rng"), payload.get("extra") or {})
     config = ModelConfig.from_dict(payload["config"])
     template = template_from_scene(scene, surface_only=config.surface_only, world_radius=config.world_radius)
     sim = simulator_from_payload(payload, template, source=str(path))

@@ -1,8 +1,10 @@
-"""Training losses that need no collision code: the data term L_q and the latent KL term.
+"""Training losses: the data term L_q, the latent KL term, L_ccd and ξ_Random.
 
-L_ccd and ξ_Random (the collision and SDF penalties) are built on the collision
-module's torch filter / narrow phase and the tool SDF; they live beside these
-once that code exists.
+L_GNN = L_q + L_ccd + L_compact (paper eq. 2), L_ccd = ξ_VF + ξ_EE (eq. 4),
+L_compact = ξ_Random + L_KL (eq. 9). The collision depths come from the
+collision module (filter + narrow phase, evaluated differentiably in torch);
+ξ_Random uses the tool's analytic SDF. Weights and ramps are training settings
+(:class:`colgnn_core.learn.train.TrainConfig`).
 """
 
 from __future__ import annotations
@@ -49,3 +51,79 @@ def kl_latent(latents: torch.Tensor, mask: torch.Tensor | None = None, eps: floa
     var = latents.var(dim=0, unbiased=False)
     kl = 0.5 * (mu ** 2 + var - 1.0 - torch.log(var + eps))
     return kl.mean()
+
+
+# -- collision-aware terms ---------------------------------------------------------------------------------------
+# L_ccd and ξ_Random reduce a set of non-negative penetration depths (metres) to a scalar. The paper's form is
+# the max over the set; the smoother forms spread the gradient over every offending primitive instead of only
+# the deepest one. Depths are divided by a length ``scale`` (the training loop passes the target acceleration's
+# std, i.e. the unit L_q's errors are measured in) so the weights are dimensionless.
+REDUCTIONS = ("max", "mean", "sum_squares")
+
+
+def reduce_depths(depths: torch.Tensor, form: str = "max", scale: float = 1.0, num_nodes: int = 1) -> torch.Tensor:
+    """Reduce depths [K] (m, >= 0) to a scalar.
+
+    * ``max``: ``max_k d_k / scale`` (the paper's ξ = max(D));
+    * ``mean``: ``mean_k d_k / scale`` over the K offending primitives;
+    * ``sum_squares``: ``sum_k (d_k / scale)^2 / num_nodes`` (a penetration costs what a prediction error of the
+      same size costs in L_q, which is a per-node mean of squared normalised errors).
+
+    An empty set gives 0 (with a zero gradient when ``depths`` is part of a graph).
+    """
+    if form not in REDUCTIONS:
+        raise ValueError(f"unknown reduction {form!r}; valid: {', '.join(REDUCTIONS)}")
+    if depths.numel() == 0:
+        return depths.sum() * 0.0
+    d = depths / scale
+    if form == "max":
+        return d.max()
+    if form == "mean":
+        return d.mean()
+    return (d * d).sum() / max(int(num_nodes), 1)
+
+
+def loss_ccd(depths: dict[str, torch.Tensor], form: str = "max", scale: float = 1.0,
+             num_nodes: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """L_ccd = ξ_VF + ξ_EE (paper eq. 4-8) from the crossing depths of one step.
+
+    Args:
+        depths: ``{'vertex_face': [Kvf], 'edge_edge': [Kee]}`` wrong-side depths at t+1 (m) of the object/tool
+            primitive pairs that cross during t -> t+1, as given by
+            :meth:`colgnn_core.collision.CollisionDetector.crossing_depths_torch` (differentiable w.r.t. the
+            predicted positions).
+        form, scale, num_nodes: see :func:`reduce_depths`.
+
+    Returns:
+        ``(L_ccd, ξ_VF, ξ_EE)``.
+    """
+    vf = reduce_depths(depths["vertex_face"], form, scale, num_nodes)
+    ee = reduce_depths(depths["edge_edge"], form, scale, num_nodes)
+    return vf + ee, vf, ee
+
+
+def sdf_violation(tool, points: torch.Tensor, pose, threshold: float) -> torch.Tensor:
+    """``max(Δ - SDF_tool(x), 0)`` [N] (m) for world points [N,3] against the tool at ``pose`` [7]."""
+    pose_t = pose if isinstance(pose, torch.Tensor) else torch.as_tensor(pose, dtype=points.dtype)
+    return torch.relu(threshold - tool.sdf_torch(points, pose_t))
+
+
+def xi_random(tool, x_random: torch.Tensor, pose_next, threshold: float, form: str = "max", scale: float = 1.0,
+              mask: torch.Tensor | None = None) -> torch.Tensor:
+    """ξ_Random (paper eq. 10): SDF violation of the positions decoded from random latents z ~ N(0, I).
+
+    Args:
+        tool: the scene's :class:`~colgnn_core.geometry.tools.Tool` (its analytic SDF is differentiable).
+        x_random: [N,3] positions at t+1 decoded from random latents (m).
+        pose_next: [7] tool pose at t+1.
+        threshold: Δ (m), the collision-free margin.
+        form, scale: see :func:`reduce_depths`; ``mean`` averages over the violating nodes only, ``sum_squares``
+            divides by the number of (masked) nodes.
+        mask: optional [N] bool nodes to use (free nodes: pinned ones cannot move).
+    """
+    if mask is not None:
+        x_random = x_random[mask]
+    v = sdf_violation(tool, x_random, pose_next, threshold)
+    if form == "mean":
+        v = v[v > 0]  # empty when nothing violates: reduce_depths gives 0 with a zero gradient
+    return reduce_depths(v, form, scale, num_nodes=x_random.shape[0])
