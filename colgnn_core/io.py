@@ -26,6 +26,8 @@ import numpy as np
 from colgnn_core.errors import InputError
 
 POSE_COLUMNS = ("t", "px", "py", "pz", "qx", "qy", "qz", "qw")
+_UMASK = os.umask(0)
+os.umask(_UMASK)
 SEQUENCE_KEYS = ("object_positions", "object_faces", "tool_positions", "tool_faces", "tool_poses", "dt")
 
 
@@ -44,6 +46,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[io.IOBas
     except OSError as exc:
         raise InputError(f"cannot write to {folder}: {exc.strerror}") from exc
     try:
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; give the usual permissions
         with os.fdopen(fd, mode) as fh:
             yield fh
             fh.flush()

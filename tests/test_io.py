@@ -122,3 +122,11 @@ def test_pose_validation_and_transforms():
     mid = interpolate_poses(np.array([0, 0, 0, 0, 0, 0, 1.0]), pose, [0.5])[0]
     np.testing.assert_allclose(mid[:3], [0.5, 1, 1.5])
     np.testing.assert_allclose(quat_to_matrix(mid[3:]) @ [1, 0, 0], [np.cos(np.pi / 4), np.sin(np.pi / 4), 0], atol=1e-12)
+
+
+def test_atomic_write_gives_usual_permissions(tmp_path):
+    with atomic_write(tmp_path / "p.txt", "w") as fh:
+        fh.write("x")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "p.txt").stat().st_mode & 0o777 == 0o666 & ~umask

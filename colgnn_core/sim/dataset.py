@@ -1,0 +1,388 @@
+"""Ground-truth datasets: IPC sequences written as contract ``.npz`` files plus a manifest.
+
+Layout of an output folder::
+
+    train_0000.npz ... train_0019.npz   seeds split_seeds('train', n)
+    test_0000.npz  ... test_0004.npz    seeds split_seeds('test', n)   (disjoint from train)
+    custom_0000.npz                     a given poses array (``colgnn generate --poses``)
+    manifest.json                       one entry per finished sequence (written atomically)
+
+Every sequence file carries, besides the contract keys, ``object_tets``,
+``object_rest``, ``newton_iterations`` [T], ``step_ms`` [T], ``min_distance`` [T] (object–tool, m),
+``kappa`` [T] (frame 0 has zeros / its initial distance), and ``seed``, ``scene``,
+``resolution``, ``split``, ``dhat``, ``dmin``, ``object_fingerprint``, ``sim_options`` (JSON)
+so the manifest can be rebuilt from the files.
+
+A family sequence that fails verification (SimulationError) is replaced by a spare seed
+of the same split (``max_retries``); the manifest lists the rejected seeds and why, so
+the bias this introduces (no trajectories the verified solver cannot do) is visible.
+
+Resume: a sequence whose file exists, loads, matches the requested scene (and its mesh
+fingerprint) / seed / frames / solver options and (if the manifest lists it) has the
+listed sha256, is skipped. Sharding
+splits the ordered job list as ``jobs[i::n]`` so several machines can share a dataset;
+the manifest is merged (re-read, updated, atomically replaced) after every sequence.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing as mp
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from colgnn_core.errors import InputError, SimulationError
+from colgnn_core.io import Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
+
+MANIFEST = "manifest.json"
+SPLITS = ("train", "test", "both")
+
+
+def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_options: Any) -> Sequence:
+    """Simulate ``poses`` [T,7] (frame 0 = the initial tool pose) with IPC; return a verified Sequence.
+
+    Poses are validated against the scene workspace (InputError naming the row). A frame that
+    fails Newton or verification raises SimulationError naming the frame. ``sim_options`` go to
+    :class:`colgnn_core.sim.ipc.IPCSimulator` (newton_tol, dhat_scale, dmin_scale, ...).
+    """
+    from colgnn_core.sim.ipc import IPCSimulator
+
+    poses = scene.check_poses(poses)
+    if len(poses) < 1:
+        raise InputError("poses must have at least one row (frame 0)")
+    sim = IPCSimulator(scene, initial_tool_pose=poses[0], **sim_options)
+    t_frames = len(poses)
+    obj = np.empty((t_frames, sim.n_obj, 3))
+    tool = np.empty((t_frames, sim.n_tool, 3))
+    iters = np.zeros(t_frames, dtype=np.int64)
+    ms = np.zeros(t_frames)
+    dist = np.zeros(t_frames)
+    kappa = np.zeros(t_frames)
+    obj[0], tool[0], dist[0] = sim.positions, sim.tool_positions, sim.tool_distance()
+    frames = range(1, t_frames)
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, desc=f"{scene.name} frames", leave=False, unit="frame")
+    for k in frames:
+        st = sim.step(poses[k])
+        obj[k], tool[k] = sim.positions, sim.tool_positions
+        iters[k], ms[k], dist[k], kappa[k] = st.newton_iterations, st.ms, st.min_distance, st.kappa
+    return Sequence(
+        object_positions=obj,
+        object_faces=np.asarray(scene.object.faces, dtype=np.int64),
+        tool_positions=tool,
+        tool_faces=np.asarray(scene.tool.faces, dtype=np.int64),
+        tool_poses=poses,
+        dt=float(scene.dt),
+        extra={
+            "object_tets": np.asarray(scene.object.tets, dtype=np.int64),
+            "object_rest": np.asarray(scene.object.vertices, dtype=np.float64),
+            "newton_iterations": iters,
+            "step_ms": ms,
+            "min_distance": dist,
+            "kappa": kappa,
+            "dhat": np.float64(sim.dhat),
+            "dmin": np.float64(sim.dmin),
+        },
+    )
+
+
+# ----------------------------------------------------------------------------- jobs
+@dataclass(frozen=True)
+class _Job:
+    scene: str
+    resolution: str
+    split: str  # train | test | custom
+    index: int
+    seed: int  # -1 for custom poses
+    frames: int
+    file: str
+    sim_options: tuple  # sorted (key, value) pairs, picklable
+    poses: np.ndarray | None = None
+    fallback_seeds: tuple = ()  # tried in order if ``seed`` fails (same split's seed class: splits stay disjoint)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _entry(job: _Job, path: Path, seq: Sequence) -> dict:
+    """Manifest entry of a finished sequence (statistics read from the file's extras)."""
+    it = np.asarray(seq.extra["newton_iterations"])[1:]
+    ms = np.asarray(seq.extra["step_ms"])[1:]
+    md = np.asarray(seq.extra["min_distance"])
+    return {
+        "file": job.file,
+        "split": job.split,
+        "index": job.index,
+        "seed": None if job.seed < 0 else job.seed,
+        "frames": seq.frames,
+        "object_vertices": int(seq.object_positions.shape[1]),
+        "newton_iterations_mean": float(it.mean()) if it.size else 0.0,
+        "newton_iterations_max": int(it.max()) if it.size else 0,
+        "ms_per_step_median": float(np.median(ms)) if ms.size else 0.0,
+        "ms_total": float(ms.sum()),
+        "min_distance": float(md.min()),
+        "dhat": float(seq.extra["dhat"]),
+        "dmin": float(seq.extra["dmin"]),
+        "sha256": _sha256(path),
+    }
+
+
+def _options_key(job: _Job) -> str:
+    return json.dumps(dict(job.sim_options), sort_keys=True)
+
+
+def _matches(job: _Job, seq: Sequence, fingerprint: str) -> bool:
+    """Was ``seq`` produced by ``job`` (same scene mesh, seed, frames, solver options)?"""
+    ex = seq.extra
+    try:
+        return (
+            seq.frames == job.frames
+            and str(ex["scene"]) == job.scene
+            and str(ex["resolution"]) == job.resolution
+            and str(ex["object_fingerprint"]) == fingerprint
+            and str(ex["sim_options"]) == _options_key(job)
+            and int(ex["seed"]) in (job.seed, *job.fallback_seeds)
+            and (job.poses is None or np.allclose(seq.tool_poses, job.poses))
+        )
+    except KeyError:
+        return False
+
+
+def _run_job(job: _Job) -> dict:
+    """Worker: simulate one sequence and write it atomically. Returns its manifest entry or an error."""
+    from colgnn_core.scenes import load_scene, sample_poses
+
+    rejected: list[dict] = []
+    try:
+        scene = load_scene(job.scene, job.resolution)
+        t0 = time.perf_counter()
+        for seed in (job.seed, *job.fallback_seeds):
+            poses = job.poses if job.poses is not None else sample_poses(scene, seed, job.frames)
+            try:
+                seq = simulate_sequence(scene, poses, **dict(job.sim_options))
+                break
+            except SimulationError as exc:
+                # A trajectory the verified solver cannot do (e.g. a coarse surface snapping past a
+                # sharp tip faster than a straight frame-to-frame motion can follow) is not saved;
+                # the next seed of the same split replaces it and the manifest records why.
+                rejected.append({"seed": int(seed), "error": str(exc)})
+                if seed == (job.fallback_seeds[-1] if job.fallback_seeds else job.seed):
+                    raise
+        seq.extra.update(
+            {
+                "seed": np.int64(seed),
+                "scene": np.asarray(job.scene),
+                "resolution": np.asarray(job.resolution),
+                "split": np.asarray(job.split),
+                "object_fingerprint": np.asarray(scene.object.fingerprint()),
+                "sim_options": np.asarray(_options_key(job)),
+            }
+        )
+        path = Path(job.file)
+        save_sequence(path, seq)
+        entry = _entry(job, path, seq)
+        entry["file"] = path.name
+        entry["seed"] = None if seed < 0 else int(seed)
+        entry["rejected_seeds"] = rejected
+        entry["wall_s"] = time.perf_counter() - t0
+        return entry
+    except (SimulationError, InputError) as exc:
+        return {"file": Path(job.file).name, "split": job.split, "seed": job.seed, "error": f"{type(exc).__name__}: {exc}",
+                "rejected_seeds": rejected}
+
+
+def _read_manifest(out_dir: Path) -> dict:
+    path = out_dir / MANIFEST
+    if not path.is_file():
+        return {"sequences": {}}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: unreadable manifest ({exc}); delete it to rebuild from the sequence files") from exc
+    data.setdefault("sequences", {})
+    return data
+
+
+def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict]) -> None:
+    """Merge ``entries`` into the manifest on disk (other shards may have added theirs) and replace it atomically."""
+    data = _read_manifest(out_dir)
+    data.update(header)
+    data["sequences"].update(entries)
+    data["sequences"] = dict(sorted(data["sequences"].items()))
+    with atomic_write(out_dir / MANIFEST, "w") as fh:
+        json.dump(data, fh, indent=1)
+        fh.write("\n")
+
+
+def _is_done(job: _Job, manifest: dict, fingerprint: str) -> tuple[bool, dict | None]:
+    """(complete?, manifest entry to keep) for an existing file."""
+    path = Path(job.file)
+    if not path.is_file():
+        return False, None
+    listed = manifest["sequences"].get(path.name)
+    try:
+        digest = _sha256(path)
+        if listed is not None and listed.get("sha256") not in (None, digest):
+            return False, None
+        seq = load_sequence(path)
+    except (InputError, OSError):
+        return False, None
+    if not _matches(job, seq, fingerprint):
+        return False, None
+    if listed is not None and listed.get("sha256") == digest:
+        return True, listed
+    entry = _entry(job, path, seq)  # file complete but not (yet) in the manifest: rebuild its entry
+    entry["file"] = path.name
+    entry["seed"] = int(seq.extra["seed"]) if int(seq.extra["seed"]) >= 0 else None
+    return True, entry
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """'I/N' -> (I, N) with 0 <= I < N; InputError otherwise."""
+    try:
+        i, n = (int(v) for v in str(text).split("/"))
+    except ValueError:
+        raise InputError(f"--shard must look like I/N (e.g. 0/4), got {text!r}") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise InputError(f"--shard I/N needs 0 <= I < N, got {text!r}")
+    return i, n
+
+
+def generate_dataset(
+    scene_name: str,
+    resolution: str,
+    out_dir: str | Path,
+    sequences: int = 20,
+    frames: int = 40,
+    jobs: int = 1,
+    shard: tuple[int, int] = (0, 1),
+    split: str = "both",
+    progress: bool = True,
+    test_sequences: int | None = None,
+    poses: np.ndarray | None = None,
+    sim_options: dict | None = None,
+    max_retries: int = 2,
+) -> dict:
+    """Simulate a dataset of a scene into ``out_dir``; returns the manifest (dict).
+
+    Args:
+        scene_name, resolution: scene registry keys ('full' | 'ci').
+        sequences: number of sequences of ``split`` ('train' or 'test'); with split='both',
+            the number of train sequences, plus ``test_sequences`` test ones (default
+            ceil(sequences/4), at least 1: 20 train -> 5 test).
+        frames: frames per sequence (frame 0 = rest).
+        jobs: worker processes (spawn; each simulates whole sequences).
+        shard: (i, n): this process does jobs[i::n] of the ordered job list.
+        poses: a given trajectory [T,7] instead of the family (written as ``custom_0000.npz``;
+            ``sequences``/``frames``/``split`` are then ignored). Validated against the workspace.
+        sim_options: IPCSimulator keyword arguments (accuracy knobs).
+        max_retries: a family sequence whose simulation fails verification is replaced by up to
+            this many spare seeds of the same split (listed under ``rejected_seeds`` in the
+            manifest); given ``poses`` are never replaced.
+
+    Raises InputError for bad arguments (unknown scene, poses outside the workspace, unwritable
+    folder) and SimulationError, after finishing the other sequences, if any sequence failed.
+    """
+    from colgnn_core.scenes import load_scene, split_seeds
+
+    scene = load_scene(scene_name, resolution)
+    if split not in SPLITS:
+        raise InputError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
+    if int(jobs) < 1:
+        raise InputError(f"jobs must be >= 1, got {jobs}")
+    i_shard, n_shard = (int(v) for v in shard)
+    if not (n_shard >= 1 and 0 <= i_shard < n_shard):
+        raise InputError(f"shard must satisfy 0 <= i < n, got {i_shard}/{n_shard}")
+    out = ensure_writable_dir(out_dir)
+    opts = tuple(sorted((sim_options or {}).items()))
+
+    all_jobs: list[_Job] = []
+    if poses is not None:
+        poses = scene.check_poses(poses)
+        all_jobs.append(_Job(scene_name, resolution, "custom", 0, -1, len(poses), str(out / "custom_0000.npz"), opts, poses))
+    else:
+        if int(frames) < 2:
+            raise InputError(f"frames must be >= 2, got {frames}")
+        if int(sequences) < 0:
+            raise InputError(f"sequences must be >= 0, got {sequences}")
+        counts = {"train": 0, "test": 0}
+        if split == "both":
+            counts["train"] = int(sequences)
+            counts["test"] = int(test_sequences) if test_sequences is not None else max(1, -(-int(sequences) // 4))
+        else:
+            counts[split] = int(sequences)
+        for sp_name, count in counts.items():
+            # Seeds count.. of the split's own seed class serve as replacements (max_retries per index).
+            spare = split_seeds(sp_name, count + count * int(max_retries))[count:]
+            for i, seed in enumerate(split_seeds(sp_name, count)):
+                fallback = tuple(spare[i * int(max_retries) : (i + 1) * int(max_retries)])
+                all_jobs.append(
+                    _Job(scene_name, resolution, sp_name, i, seed, int(frames), str(out / f"{sp_name}_{i:04d}.npz"), opts, None, fallback)
+                )
+    my_jobs = all_jobs[i_shard::n_shard]
+
+    header = {
+        "scene": scene_name,
+        "resolution": resolution,
+        "dt": float(scene.dt),
+        "object_fingerprint": scene.object.fingerprint(),
+        "sim_options": dict(opts),
+    }
+    manifest = _read_manifest(out)
+    if manifest.get("scene", scene_name) != scene_name or manifest.get("resolution", resolution) != resolution:
+        raise InputError(
+            f"{out / MANIFEST} belongs to {manifest.get('scene')}/{manifest.get('resolution')}, not {scene_name}/{resolution}"
+        )
+    done: dict[str, dict] = {}
+    todo: list[_Job] = []
+    for job in my_jobs:
+        ok, entry = _is_done(job, manifest, header["object_fingerprint"])
+        if ok:
+            done[Path(job.file).name] = entry
+        else:
+            todo.append(job)
+    _write_manifest(out, header, done)
+
+    failures: list[str] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(my_jobs), initial=len(done), desc=f"{scene_name}/{resolution}", unit="seq")
+
+    def record(entry: dict) -> None:
+        if "error" in entry:
+            failures.append(f"{entry['file']}: {entry['error']}")
+        else:
+            _write_manifest(out, header, {entry["file"]: entry})
+        if bar is not None:
+            bar.update(1)
+            if "ms_per_step_median" in entry:
+                bar.set_postfix(ms_step=f"{entry['ms_per_step_median']:.0f}", newton=f"{entry['newton_iterations_mean']:.1f}")
+
+    if int(jobs) == 1 or len(todo) <= 1:
+        for job in todo:
+            record(_run_job(job))
+    else:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(processes=min(int(jobs), len(todo))) as pool:
+            for entry in pool.imap_unordered(_run_job, todo):
+                record(entry)
+    if bar is not None:
+        bar.close()
+    manifest = _read_manifest(out)
+    if failures:
+        raise SimulationError(f"{len(failures)} sequence(s) failed: " + "; ".join(failures))
+    return manifest

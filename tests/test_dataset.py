@@ -1,0 +1,131 @@
+"""Dataset generation: determinism, files + manifest, resume, shards, custom poses, bad input."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from colgnn_core.errors import InputError
+from colgnn_core.io import load_sequence
+from colgnn_core.scenes import load_scene, sample_poses
+from colgnn_core.sim.dataset import generate_dataset, parse_shard, simulate_sequence
+
+SCENE = "cylinder_banana"  # the cheapest 'ci' scene (~0.1 s per step)
+
+
+def test_same_seed_gives_the_same_sequence():
+    scene = load_scene(SCENE, "ci")
+    a = simulate_sequence(scene, sample_poses(scene, 3, 5))
+    b = simulate_sequence(scene, sample_poses(scene, 3, 5))
+    assert np.array_equal(a.object_positions, b.object_positions)
+    assert np.array_equal(a.tool_positions, b.tool_positions)
+    c = simulate_sequence(scene, sample_poses(scene, 6, 5))
+    assert not np.array_equal(a.tool_poses, c.tool_poses)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds")
+    manifest = generate_dataset(SCENE, "ci", out, sequences=2, frames=4, test_sequences=1, jobs=2, progress=False)
+    return out, manifest
+
+
+def test_generate_writes_sequences_and_manifest(dataset):
+    out, manifest = dataset
+    names = sorted(p.name for p in out.glob("*.npz"))
+    assert names == ["test_0000.npz", "train_0000.npz", "train_0001.npz"]
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk == manifest
+    assert manifest["scene"] == SCENE and manifest["resolution"] == "ci"
+    seeds = {e["split"]: [] for e in manifest["sequences"].values()}
+    for name, entry in manifest["sequences"].items():
+        seq = load_sequence(out / name)
+        assert seq.frames == entry["frames"] == 4
+        assert entry["sha256"] and len(entry["sha256"]) == 64
+        assert entry["newton_iterations_max"] >= entry["newton_iterations_mean"] >= 1
+        assert entry["ms_per_step_median"] > 0
+        for key in ("object_tets", "object_rest", "newton_iterations", "step_ms", "min_distance"):
+            assert key in seq.extra
+        assert seq.extra["newton_iterations"].shape == (4,)
+        seeds[entry["split"]].append(entry["seed"])
+    assert not set(seeds["train"]) & set(seeds["test"])
+
+
+def test_generate_resumes_without_recomputing(dataset):
+    out, manifest = dataset
+    mtimes = {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
+    again = generate_dataset(SCENE, "ci", out, sequences=2, frames=4, test_sequences=1, progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == mtimes
+    assert again["sequences"] == manifest["sequences"]
+
+
+def test_generate_redoes_a_corrupted_sequence(tmp_path):
+    generate_dataset(SCENE, "ci", tmp_path, sequences=1, frames=3, split="train", progress=False)
+    path = tmp_path / "train_0000.npz"
+    good = path.read_bytes()
+    path.write_bytes(good[: len(good) // 2])
+    m = generate_dataset(SCENE, "ci", tmp_path, sequences=1, frames=3, split="train", progress=False)
+    assert load_sequence(path).frames == 3
+    assert m["sequences"]["train_0000.npz"]["sha256"] != ""
+
+
+def test_shards_split_the_jobs(tmp_path):
+    m = generate_dataset(SCENE, "ci", tmp_path, sequences=2, frames=3, split="train", shard=(1, 2), progress=False)
+    assert sorted(m["sequences"]) == ["train_0001.npz"]
+    assert parse_shard("1/2") == (1, 2)
+    for bad in ("2/2", "x", "1/0", "-1/3"):
+        with pytest.raises(InputError):
+            parse_shard(bad)
+
+
+def test_generate_from_given_poses(tmp_path):
+    scene = load_scene(SCENE, "ci")
+    poses = sample_poses(scene, 9, 4)
+    m = generate_dataset(SCENE, "ci", tmp_path, poses=poses, progress=False)
+    seq = load_sequence(tmp_path / "custom_0000.npz")
+    assert np.allclose(seq.tool_poses, poses)
+    assert m["sequences"]["custom_0000.npz"]["seed"] is None
+
+
+def test_poses_outside_the_workspace_are_rejected(tmp_path):
+    scene = load_scene(SCENE, "ci")
+    poses = sample_poses(scene, 0, 3)
+    poses[2, 2] = scene.workspace_max[2] + 0.5
+    with pytest.raises(InputError, match="workspace"):
+        simulate_sequence(scene, poses)
+    with pytest.raises(InputError, match="workspace"):
+        generate_dataset(SCENE, "ci", tmp_path, poses=poses, progress=False)
+    assert not list(tmp_path.glob("*.npz"))
+
+
+def test_bad_arguments_are_input_errors(tmp_path):
+    with pytest.raises(InputError):
+        generate_dataset("no_such_scene", "ci", tmp_path, progress=False)
+    with pytest.raises(InputError):
+        generate_dataset(SCENE, "huge", tmp_path, progress=False)
+    with pytest.raises(InputError):
+        generate_dataset(SCENE, "ci", tmp_path, frames=1, progress=False)
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(InputError):
+        generate_dataset(SCENE, "ci", blocker / "sub", progress=False)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write anywhere")
+def test_unwritable_folder_is_an_input_error(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    with pytest.raises(InputError):
+        generate_dataset(SCENE, "ci", ro, sequences=1, frames=2, progress=False)
+
+
+def test_failing_sequences_are_replaced_then_reported(tmp_path):
+    from colgnn_core.errors import SimulationError
+
+    # One Newton iteration per step cannot settle the banana: every seed fails, none is saved.
+    with pytest.raises(SimulationError, match="train_0000.npz"):
+        generate_dataset(SCENE, "ci", tmp_path, sequences=1, frames=3, split="train", progress=False,
+                         sim_options={"max_newton": 1}, max_retries=1)
+    assert not list(tmp_path.glob("*.npz"))
