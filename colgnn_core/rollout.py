@@ -2,9 +2,10 @@
 
 The loop is written against a small *stepper* interface (``reset(x0)``,
 ``step(pose_next) -> object graph-node positions``) so the real-time
-``Predictor`` (GNN step + collision-aware correction) can replace
-:class:`RawStepper` without touching the loop. Until the Predictor exists,
-``correction=True`` is refused with an InputError naming ``--no-correction``.
+``Predictor`` (GNN step + collision-aware correction) replaces
+:class:`RawStepper` without touching the loop: ``correction=True`` rolls out
+through :class:`colgnn_core.predictor.Predictor` (which uses RawStepper's
+``propose``/``commit`` for the network step, so there is one implementation of it).
 
 The raw network is integrated as trained (second order, from rest: x_{-1} = x_0).
 Nothing is clamped unless asked (``limits='data'`` or explicit ``max_displacement`` /
@@ -93,10 +94,23 @@ class RawStepper:
         self.tool_t = torch.from_numpy(self.scene.tool.world_vertices(self.pose))
 
     @torch.no_grad()
-    def step(self, pose_next: np.ndarray) -> np.ndarray:
-        pose_next = np.asarray(pose_next, dtype=np.float64)
-        tool_next = torch.from_numpy(self.scene.tool.world_vertices(pose_next))
-        x_next = self.model.predict(Frame(self.x_prev, self.x_t, self.tool_t, tool_next, pose_next))
+    def propose(self, pose_next: np.ndarray, tool_next: torch.Tensor) -> torch.Tensor:
+        """x_{t+1} [N,3] from the network (capped if asked) without advancing the state.
+
+        Sets ``self.clamped`` and ``self.last_ms`` ({'graph', 'gnn'} wall times of this call).
+        """
+        t0 = time.perf_counter()
+        frame = Frame(self.x_prev, self.x_t, self.tool_t, tool_next, pose_next)
+        if hasattr(self.model, "build_graph") and hasattr(self.model, "network"):
+            graph = self.model.build_graph(frame)
+            t1 = time.perf_counter()
+            pred_norm, _ = self.model.network(graph)
+            x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev)
+        else:  # models without the graph pieces (the subspace baseline)
+            t1 = t0
+            x_next = self.model.predict(frame)
+        t2 = time.perf_counter()
+        self.last_ms = {"graph": 1e3 * (t1 - t0), "gnn": 1e3 * (t2 - t1)}
         self.clamped = 0
         if self.max_displacement is not None:
             d = x_next - self.x_t
@@ -112,20 +126,33 @@ class RawStepper:
             if bool(over.any()):
                 self.clamped += int(over.sum())
                 x_next = torch.where(over, self.rest + d * (self.max_deviation / n), x_next)
+        return x_next
+
+    def commit(self, x_next: torch.Tensor, tool_next: torch.Tensor, pose_next: np.ndarray) -> None:
+        """Advance the state to t+1 with positions ``x_next`` (raw or corrected)."""
         self.x_prev, self.x_t, self.tool_t, self.pose = self.x_t, x_next, tool_next, pose_next
+
+    @torch.no_grad()
+    def step(self, pose_next: np.ndarray) -> np.ndarray:
+        pose_next = np.asarray(pose_next, dtype=np.float64)
+        tool_next = torch.from_numpy(self.scene.tool.world_vertices(pose_next))
+        x_next = self.propose(pose_next, tool_next)
+        self.commit(x_next, tool_next, pose_next)
         return x_next.numpy()
 
 
 def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *, scene=None,
             initial_positions: np.ndarray | None = None, limits: str = "none", max_displacement: float | None = None,
-            max_deviation: float | None = None, progress: bool = False) -> Sequence:
+            max_deviation: float | None = None, progress: bool = False,
+            predictor_options: dict | None = None) -> Sequence:
     """Roll a model out over a tool trajectory.
 
     Args:
         checkpoint_or_scene: checkpoint path, :class:`LoadedCheckpoint`, or scene name (its shipped model).
         poses: [T,7] tool poses, one per model step, frame 0 = the initial state (checked against the
             scene workspace: InputError naming the row).
-        correction: collision-aware correction (the Predictor); not available yet, refused with InputError.
+        correction: collision-aware correction: the rollout goes through :class:`colgnn_core.predictor.Predictor`
+            (large pose jumps subdivided; per-frame counts and stage timings added to ``extra``).
         scene: the Scene (default: the one the checkpoint names, at its resolution).
         initial_positions: [N_mesh,3] object vertices at frame 0 (default: the scene's rest mesh).
         limits: 'none' (the raw network, nothing capped) or 'data': caps derived from the training data the
@@ -135,15 +162,13 @@ def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *,
         max_deviation: explicit cap (m) on any node's distance from its rest position (overrides ``limits``).
             Capped node counts per frame go to ``extra['clamped_nodes']``.
         progress: tqdm bar.
+        predictor_options: keyword arguments for the Predictor (correction=True only), e.g. max_substeps.
 
     Returns:
         A contract :class:`Sequence` with every mesh vertex (interior ones interpolated when the model is
         surface-only), the tool's surface vertices per frame, ``extra['step_ms']`` [T] (model step wall
         time in ms, 0 for frame 0) and ``extra['clamped_nodes']`` [T].
     """
-    if correction:
-        raise InputError("collision-aware correction is not available yet (it comes with the Predictor); "
-                         "use --no-correction for the raw network")
     loaded = load_model(checkpoint_or_scene, scene)
     if scene is None:
         from colgnn_core.scenes import load_scene
@@ -162,6 +187,14 @@ def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *,
             max_displacement = DATA_STEP_FACTOR * float(stats["max"])
         if max_deviation is None:
             max_deviation = DATA_DEVIATION_FACTOR * float(stats["max_deviation"])
+    if correction:
+        from colgnn_core.predictor import Predictor
+
+        stepper = Predictor(loaded, scene, correction=True, threads=None, max_displacement=max_displacement,
+                            max_deviation=max_deviation, **(predictor_options or {})).stepper()
+        seq = run_stepper(stepper, scene, poses, initial_positions, progress)
+        seq.extra.update(stepper.extra())
+        return seq
     stepper = RawStepper(loaded.simulator, scene, max_displacement, max_deviation)
     return run_stepper(stepper, scene, poses, initial_positions, progress)
 

@@ -736,7 +736,8 @@ class IPCSimulator:
         )
         hit = _SETTLE_CACHE.get(key)
         if hit is not None:
-            self.x[: self.n_obj] = hit
+            # kappa is state too: a cached settle must start frame 1 exactly like a computed one
+            self.x[: self.n_obj], self.kappa = hit[0], hit[1]
             self.v = np.zeros((self.n_obj, 3))
             return
         if self.ground is not None and not self.pinned.any():
@@ -759,4 +760,4 @@ class IPCSimulator:
         self.v = np.zeros((self.n_obj, 3))
         if len(_SETTLE_CACHE) > 16:
             _SETTLE_CACHE.clear()
-        _SETTLE_CACHE[key] = self.x[: self.n_obj].copy()
+        _SETTLE_CACHE[key] = (self.x[: self.n_obj].copy(), self.kappa)
