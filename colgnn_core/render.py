@@ -29,6 +29,40 @@ def tool_signed_distance(points: np.ndarray, tool_vertices: np.ndarray, tool_fac
     return np.where(inside, -dist, dist)
 
 
+def plane_section(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Segments [K,2,3] where a triangle mesh crosses the plane through ``origin`` with unit ``normal``."""
+    d = (vertices - origin) @ normal
+    tri_d = d[faces]                                   # [F,3]
+    cut = (tri_d.min(1) < 0) & (tri_d.max(1) > 0)
+    tri, td = vertices[faces[cut]], tri_d[cut]        # [K,3,3], [K,3]
+    points = []
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        crosses = (td[:, i] < 0) != (td[:, j] < 0)
+        s = np.where(crosses, td[:, i] / np.where(crosses, td[:, i] - td[:, j], 1.0), np.nan)
+        points.append(tri[:, i] + s[:, None] * (tri[:, j] - tri[:, i]))
+    points = np.stack(points, axis=1)                  # [K,3,3] with one NaN row per triangle
+    ok = ~np.isnan(points[..., 0])
+    order = np.argsort(~ok, axis=1, kind="stable")[:, :2]
+    return np.take_along_axis(points, order[..., None], axis=1)
+
+
+def section_plane(seq: Sequence, frames: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(origin, normal, in-plane horizontal axis) of a vertical plane through the tool's working point.
+
+    The normal is the tool frame's x axis made horizontal, so a knife is cut across its blade.
+    """
+    from colgnn_core.geometry.transforms import quat_to_matrix
+
+    pose = seq.tool_poses[frames[len(frames) // 2]]
+    normal = quat_to_matrix(pose[3:])[:, 0].copy()
+    normal[2] = 0.0
+    if np.linalg.norm(normal) < 1e-6:
+        normal = np.array([0.0, 1.0, 0.0])
+    normal /= np.linalg.norm(normal)
+    axis = np.cross([0.0, 0.0, 1.0], normal)
+    return pose[:3], normal, axis / np.linalg.norm(axis)
+
+
 def pick_frames(total: int, count: int) -> list[int]:
     """``count`` evenly spaced frame indices in [0, total), always including the last."""
     count = max(1, min(count, total))
@@ -64,11 +98,46 @@ def _draw_frame(ax, seq: Sequence, frame: int, scale: float, limits: tuple[np.nd
     ax.set_title(title, fontsize=9)
 
 
+def _draw_section(ax, seq: Sequence, frame: int, plane, window: tuple[np.ndarray, np.ndarray]) -> None:
+    """Cross-section through the contact: object outline (blue), tool outline (grey), crossings in red."""
+    from matplotlib.collections import LineCollection
+
+    origin, normal, axis = plane
+    to2d = lambda seg: np.stack([(seg - origin) @ axis, seg[..., 2]], axis=-1)
+    obj = to2d(plane_section(seq.object_positions[frame], seq.object_faces, origin, normal))
+    tool = to2d(plane_section(seq.tool_positions[frame], seq.tool_faces, origin, normal))
+    ax.add_collection(LineCollection(tool, colors="0.35", linewidths=1.2))
+    ax.add_collection(LineCollection(obj, colors="tab:blue", linewidths=0.9))
+    lo, hi = window
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=6)
+
+
+def _section_window(seqs: list[Sequence], frames: list[int], planes) -> tuple[np.ndarray, np.ndarray]:
+    """A common 2-D window (in-plane axis, z) around the object outline, in metres."""
+    pts = []
+    for seq, (origin, normal, axis) in zip(seqs, planes):
+        for f in frames:
+            seg = plane_section(seq.object_positions[f], seq.object_faces, origin, normal).reshape(-1, 3)
+            pts.append(np.stack([(seg - origin) @ axis, seg[:, 2]], axis=1))
+    pts = np.concatenate(pts) if pts else np.zeros((1, 2))
+    lo, hi = pts.min(0), pts.max(0)
+    # zoom on the contact: the tool's working point is at in-plane coordinate 0
+    half = max(0.3 * (hi - lo)[0], (hi - lo)[1])
+    lo[0], hi[0] = max(lo[0], -half), min(hi[0], half)
+    pad = 0.1 * (hi - lo).max()
+    lo, hi = lo - pad, hi + pad
+    hi[1] = max(hi[1], lo[1] + 0.6 * (hi[0] - lo[0]))  # room above for the tool
+    return lo, hi
+
+
 def _limits(seqs: list[Sequence], frames: list[int]) -> tuple[np.ndarray, np.ndarray]:
     """A common view box around the objects, extended to the tool where it is near."""
     obj = np.concatenate([s.object_positions[frames].reshape(-1, 3) for s in seqs])
     lo, hi = obj.min(0), obj.max(0)
-    pad = 0.25 * (hi - lo).max()
+    pad = 0.05 * (hi - lo).max()
     lo, hi = lo - pad, hi + pad
     tool = np.concatenate([s.tool_positions[frames].reshape(-1, 3) for s in seqs])
     near = tool[np.all((tool > lo) & (tool < hi + pad), axis=1)]
@@ -78,7 +147,7 @@ def _limits(seqs: list[Sequence], frames: list[int]) -> tuple[np.ndarray, np.nda
 
 
 def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None, count: int = 5) -> Path:
-    """Write a PNG grid: one row per sequence, one column per frame."""
+    """Write a PNG grid: per sequence, a row of 3-D views and a row of cross-sections through the contact."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -89,11 +158,16 @@ def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frame
     frames = frames or pick_frames(total, count)
     limits = _limits(seqs, frames)
     scale = 0.1 * float(np.linalg.norm(limits[1] - limits[0]))
-    fig = plt.figure(figsize=(2.6 * len(frames), 2.6 * len(seqs)), dpi=90)
-    for r, (seq, label) in enumerate(zip(seqs, labels)):
+    planes = [section_plane(s, frames) for s in seqs]
+    window = _section_window(seqs, frames, planes)
+    rows, cols = 2 * len(seqs), len(frames)
+    fig = plt.figure(figsize=(2.8 * cols, 2.5 * rows), dpi=90)
+    for r, (seq, label, plane) in enumerate(zip(seqs, labels, planes)):
         for c, f in enumerate(frames):
-            ax = fig.add_subplot(len(seqs), len(frames), r * len(frames) + c + 1, projection="3d")
+            ax = fig.add_subplot(rows, cols, 2 * r * cols + c + 1, projection="3d")
             _draw_frame(ax, seq, f, scale, limits, f"{label}  t={f}" if label else f"t={f}")
+            ax = fig.add_subplot(rows, cols, (2 * r + 1) * cols + c + 1)
+            _draw_section(ax, seq, f, plane, window)
     fig.tight_layout()
     with atomic_write(out) as fh:
         fig.savefig(fh, format="png")
