@@ -45,8 +45,6 @@ def test_rollout_writes_a_contract_sequence(tmp_path):
 def test_rollout_rejects_bad_input():
     scene, ckpt = fx.scene(), fx.trained_checkpoint("full")
     poses = sample_poses(scene, 0, 4)
-    with pytest.raises(InputError, match="no-correction"):
-        rollout(ckpt, poses, correction=True, scene=scene)
     far = poses.copy()
     far[2, 2] = 5.0
     with pytest.raises(InputError, match="pose 2"):

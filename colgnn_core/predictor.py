@@ -1,0 +1,331 @@
+"""The real-time predictor: one GNN step + collision-aware correction per tool pose.
+
+``Predictor`` is the one stepping API behind ``colgnn rollout`` (with correction),
+``colgnn bench`` and the ROS node::
+
+    pred = Predictor.from_checkpoint("cone_bunny")          # or a checkpoint path
+    pred.reset()
+    res = pred.step(tool_pose)                               # [px,py,pz,qx,qy,qz,qw]
+    res.positions, res.surface_faces, res.collision_counts(), res.timings_ms
+
+Each call validates the pose (NaN/inf, quaternion norm, workspace: InputError with
+the state unchanged), splits a jump larger than the training distribution's per-step
+tool motion into several model steps (``interpolate_poses``; more than
+``max_substeps`` is refused, state unchanged), runs the network on each sub-pose,
+corrects its output with :class:`~colgnn_core.collision.correction.CollisionCorrector`
+and feeds the *corrected* positions to the next step.
+
+The correction works on the object graph nodes' surface (surface-only models: all
+graph nodes; full-mesh models: the surface subset); interior mesh vertices are
+lifted from the corrected nodes (``lift_to_mesh``), so the published mesh is the
+corrected one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, CollisionCorrector
+from colgnn_core.errors import InputError
+from colgnn_core.geometry.transforms import interpolate_poses
+from colgnn_core.learn.graph import lift_to_mesh
+
+__all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS"]
+
+DEFAULT_MAX_SUBSTEPS = 16
+EASE_PEAK = 1.5            # trajectories.py eases every move with a smoothstep: peak speed 1.5x the mean
+MIN_ROTATION_STEP = math.radians(2.0)  # floor of the per-step rotation limit (families without tilt)
+COUNT_LABELS = ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
+                "penetrating_vertices_after", "correction_iterations", "fallback", "substeps")
+
+
+@dataclass
+class StepResult:
+    """One published state.
+
+    positions: [N_mesh,3] every object mesh vertex (m); surface_faces [F,3] (mesh ids) and
+    surface_vertex_ids [S] are the scene's constant arrays (shared, do not modify);
+    tool_vertices [M,3] world, tool_faces [G,3]; tool_pose [7] the (normalised) pose used.
+    Counts are summed over the substeps (``*_before``: crossings in the raw network output;
+    ``*_after``: crossings the fast check finds after correction). timings_ms: graph, gnn,
+    correction, total (ms, summed over substeps).
+    """
+
+    positions: np.ndarray
+    surface_faces: np.ndarray
+    surface_vertex_ids: np.ndarray
+    tool_vertices: np.ndarray
+    tool_faces: np.ndarray
+    tool_pose: np.ndarray
+    vertex_face_before: int = 0
+    edge_edge_before: int = 0
+    vertex_face_after: int = 0
+    edge_edge_after: int = 0
+    penetrating_vertices_after: int = 0
+    correction_iterations: int = 0
+    fallback: bool = False
+    substeps: int = 1
+    timings_ms: dict = field(default_factory=dict)
+
+    @property
+    def surface_vertices(self) -> np.ndarray:
+        """[S,3] positions of the surface vertices (a gather; faces index ``positions``)."""
+        return self.positions[self.surface_vertex_ids]
+
+    def collision_counts(self) -> dict[str, int]:
+        """The ``collision_counts`` topic fields (msg_tools.conversions.COLLISION_COUNT_LABELS order)."""
+        return {k: int(getattr(self, k)) for k in COUNT_LABELS}
+
+
+@lru_cache(maxsize=None)
+def _family_limits(scene_name: str, resolution: str, seeds: int = 3, frames: int = 160) -> tuple[float, float]:
+    from colgnn_core.scenes import load_scene
+    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
+
+    scene = load_scene(scene_name, resolution)
+    fam = scene.family
+    trans = EASE_PEAK * float(np.max(fam["speed"])) * float(np.max(fam.get("retract_speed_factor", 1.0)))
+    rot = 0.0
+    for seed in split_seeds("train", seeds):
+        P = sample_poses(scene, seed, frames)
+        trans = max(trans, float(np.linalg.norm(np.diff(P[:, :3], axis=0), axis=1).max()))
+        dots = np.clip(np.abs((P[1:, 3:] * P[:-1, 3:]).sum(1)), 0.0, 1.0)
+        rot = max(rot, float((2.0 * np.arccos(dots)).max()))
+    return trans, max(rot, MIN_ROTATION_STEP)
+
+
+def tool_step_limits(scene, extra: dict | None = None) -> tuple[float, float]:
+    """(max translation m, max rotation rad) of the tool in one model step in the training distribution.
+
+    From the checkpoint's ``extra`` when it records ``tool_step_max_translation`` /
+    ``tool_step_max_rotation``; else from the scene's trajectory family: the larger of the
+    analytic peak speed (1.5 x the top mean speed x the retract factor) and the largest step in
+    a few sampled training trajectories (rotation likewise, at least 2 degrees).
+    """
+    extra = extra or {}
+    if "tool_step_max_translation" in extra and "tool_step_max_rotation" in extra:
+        return float(extra["tool_step_max_translation"]), float(extra["tool_step_max_rotation"])
+    return _family_limits(scene.name, scene.resolution)
+
+
+def _rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
+    return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(q0, q1))))))
+
+
+class Predictor:
+    """GNN step + collision-aware correction for one scene (see module docstring).
+
+    Args:
+        loaded: a :class:`~colgnn_core.learn.checkpoint.LoadedCheckpoint` (GNN or subspace model).
+        scene: the Scene it belongs to.
+        correction: run the collision-aware correction (False: the raw network, still validated/subdivided).
+        max_substeps: most model steps one ``step`` call may take for a large jump.
+        threads: torch intra-op threads (set process-wide).
+        max_iterations: correction passes before the safe fallback.
+        step_limits: (max translation m, max rotation rad) per model step; default from the
+            checkpoint / scene family (:func:`tool_step_limits`).
+        max_displacement, max_deviation: optional caps on the raw network output (see
+            :class:`colgnn_core.rollout.RawStepper`), applied before the correction.
+    """
+
+    def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
+                 threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
+                 step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
+                 max_deviation: float | None = None):
+        from colgnn_core.rollout import RawStepper
+
+        if max_substeps < 1:
+            raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
+        if threads is not None:
+            if threads < 1:
+                raise InputError(f"threads must be >= 1, got {threads}")
+            torch.set_num_threads(int(threads))
+        self.loaded = loaded
+        self.scene = scene
+        self.model = loaded.simulator
+        self.template = self.model.template
+        self.correction = bool(correction)
+        self.max_substeps = int(max_substeps)
+        self.threads = torch.get_num_threads()
+        self.max_translation, self.max_rotation = (tool_step_limits(scene, loaded.extra) if step_limits is None
+                                                   else (float(step_limits[0]), float(step_limits[1])))
+        if not (self.max_translation > 0 and self.max_rotation > 0):
+            raise InputError(f"step limits must be > 0, got {self.max_translation} m, {self.max_rotation} rad")
+        self._net = RawStepper(self.model, scene, max_displacement, max_deviation)
+        tpl = self.template
+        self.surface_faces = np.asarray(scene.object.faces, dtype=np.int64)
+        self.surface_vertex_ids = np.unique(self.surface_faces)
+        self.tool_faces = np.asarray(scene.tool.faces, dtype=np.int64)
+        self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
+                                             max_iterations=max_iterations) if self.correction else None)
+        self.steps = 0          # model steps since reset
+        self.fallbacks = 0      # steps whose correction used the fallback since reset
+        self.reset()
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint_or_scene, *, scene=None, correction: bool = True,
+                        max_substeps: int = DEFAULT_MAX_SUBSTEPS, threads: int | None = 2, **kwargs) -> "Predictor":
+        """A Predictor from a checkpoint path, a LoadedCheckpoint, or a scene name (its shipped model)."""
+        from colgnn_core.rollout import load_model
+
+        loaded = load_model(checkpoint_or_scene, scene)
+        if scene is None:
+            from colgnn_core.scenes import load_scene
+
+            scene = load_scene(loaded.meta.scene, loaded.meta.resolution)
+        return cls(loaded, scene, correction=correction, max_substeps=max_substeps, threads=threads, **kwargs)
+
+    # -- state ----------------------------------------------------------------------------------------------------
+    def reset(self, positions: np.ndarray | None = None, tool_pose: np.ndarray | None = None) -> None:
+        """Object at rest (or ``positions`` [N_mesh,3]) and at rest velocity; tool at its rest pose (or ``tool_pose``)."""
+        n_mesh = self.scene.object.vertices.shape[0]
+        x0 = np.asarray(self.scene.object.vertices if positions is None else positions, dtype=np.float64)
+        if x0.shape != (n_mesh, 3) or not np.all(np.isfinite(x0)):
+            raise InputError(f"positions must be a finite [{n_mesh},3] array, got shape {x0.shape}")
+        pose = self.scene.tool_rest_pose if tool_pose is None else tool_pose
+        pose = self.scene.check_pose(pose)
+        self._net.reset(x0[self.template.object_nodes], pose)
+        self._mesh = x0.copy()
+        self._tool_np = self.scene.tool.world_vertices(pose)
+        self.steps = 0
+        self.fallbacks = 0
+
+    @property
+    def tool_pose(self) -> np.ndarray:
+        """[7] the tool pose of the current state."""
+        return self._net.pose.copy()
+
+    @property
+    def positions(self) -> np.ndarray:
+        """[N_mesh,3] the current published object positions."""
+        return self._mesh.copy()
+
+    @property
+    def graph_positions(self) -> np.ndarray:
+        """[N,3] the current object graph-node positions."""
+        return self._net.x_t.numpy().copy()
+
+    # -- stepping -------------------------------------------------------------------------------------------------
+    def substeps_for(self, pose: np.ndarray) -> int:
+        """Model steps needed to move the tool from the current pose to ``pose`` (validated [7])."""
+        cur = self._net.pose
+        n_t = float(np.linalg.norm(pose[:3] - cur[:3])) / self.max_translation
+        n_r = _rotation_angle(cur[3:], pose[3:]) / self.max_rotation
+        # 1e-9: a step exactly at the limit stays one step despite rounding.
+        return max(1, int(math.ceil(max(n_t, n_r) - 1e-9)))
+
+    def check(self, tool_pose) -> tuple[np.ndarray, int]:
+        """(validated pose, substeps) or InputError; does not change the state."""
+        pose = self.scene.check_pose(tool_pose)
+        n = self.substeps_for(pose)
+        if n > self.max_substeps:
+            cur = self._net.pose
+            raise InputError(
+                f"tool pose jump too large: {np.linalg.norm(pose[:3] - cur[:3]) * 1e3:.1f} mm and "
+                f"{math.degrees(_rotation_angle(cur[3:], pose[3:])):.1f} deg in one step would need {n} model steps "
+                f"(limit {self.max_substeps} of at most {self.max_translation * 1e3:.2f} mm / "
+                f"{math.degrees(self.max_rotation):.2f} deg each)")
+        return pose, n
+
+    @torch.inference_mode()
+    def step(self, tool_pose) -> StepResult:
+        """Advance to ``tool_pose`` [7] and return the published state (InputError: state unchanged)."""
+        t_start = time.perf_counter()
+        pose, n = self.check(tool_pose)
+        start = self._net.pose
+        subposes = interpolate_poses(start, pose, np.arange(1, n + 1) / n) if n > 1 else pose[None]
+        subposes[-1] = pose
+        res = StepResult(positions=self._mesh, surface_faces=self.surface_faces,
+                         surface_vertex_ids=self.surface_vertex_ids, tool_vertices=None, tool_faces=self.tool_faces,
+                         tool_pose=pose, substeps=n)
+        ms = {"graph": 0.0, "gnn": 0.0, "correction": 0.0}
+        net = self._net
+        saved = (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps, self.fallbacks)
+        try:
+            for sp in subposes:
+                self._model_step(sp, res, ms)
+        except BaseException:
+            # A failure inside a model step (e.g. non-finite network output) leaves the state as it was.
+            (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps,
+             self.fallbacks) = saved
+            raise
+        t_lift = time.perf_counter()
+        self._mesh = lift_to_mesh(self.template, self._net.x_t.numpy())
+        ms["graph"] += 1e3 * (time.perf_counter() - t_lift)  # lifting belongs to the graph bookkeeping
+        res.positions = self._mesh
+        res.tool_vertices = self._tool_np
+        ms["total"] = 1e3 * (time.perf_counter() - t_start)
+        res.timings_ms = ms
+        return res
+
+    def _model_step(self, pose_next: np.ndarray, res: StepResult, ms: dict) -> None:
+        net = self._net
+        tool_next_np = self.scene.tool.world_vertices(pose_next)
+        tool_next = torch.from_numpy(tool_next_np)
+        x_raw = net.propose(pose_next, tool_next)
+        ms["graph"] += net.last_ms["graph"]
+        ms["gnn"] += net.last_ms["gnn"]
+        if self.corrector is not None:
+            t = time.perf_counter()
+            c = self.corrector.correct(net.x_t.numpy(), x_raw.numpy(), net.pose, pose_next,
+                                       net.tool_t.numpy(), tool_next_np)
+            ms["correction"] += 1e3 * (time.perf_counter() - t)
+            res.vertex_face_before += c.vertex_face_before
+            res.edge_edge_before += c.edge_edge_before
+            res.vertex_face_after += c.vertex_face_after
+            res.edge_edge_after += c.edge_edge_after
+            res.penetrating_vertices_after = c.penetrating_after
+            res.correction_iterations += c.iterations
+            if c.fallback:
+                res.fallback = True
+                self.fallbacks += 1
+            x_next = torch.from_numpy(c.positions)
+        else:
+            x_next = x_raw
+        net.commit(x_next, tool_next, pose_next)
+        self._tool_np = tool_next_np
+        self.steps += 1
+
+    # -- the rollout loop's stepper interface ---------------------------------------------------------------------
+    def stepper(self) -> "PredictorStepper":
+        """This predictor behind the rollout loop's Stepper protocol (graph-node positions per step)."""
+        return PredictorStepper(self)
+
+
+class PredictorStepper:
+    """Adapter for :func:`colgnn_core.rollout.run_stepper`: records a StepResult summary per frame."""
+
+    def __init__(self, predictor: Predictor):
+        self.predictor = predictor
+        self.template = predictor.template
+        self.clamped = 0
+        self.records: list[dict] = []
+
+    def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
+        p = self.predictor
+        x0 = np.asarray(p.scene.object.vertices, dtype=np.float64).copy()
+        x0[p.template.object_nodes] = x0_graph
+        # Interior vertices of a surface-only model are not state: lift them from the nodes.
+        p.reset(lift_to_mesh(p.template, x0[p.template.object_nodes]), pose0)
+        self.records = []
+
+    def step(self, pose_next: np.ndarray) -> np.ndarray:
+        r = self.predictor.step(pose_next)
+        rec = r.collision_counts()
+        rec.update({f"{k}_ms": v for k, v in r.timings_ms.items()})
+        self.records.append(rec)
+        return self.predictor.graph_positions
+
+    def extra(self) -> dict[str, np.ndarray]:
+        """Per-frame arrays [T] (frame 0 = 0) of the counts and stage timings, for Sequence.extra."""
+        if not self.records:
+            return {}
+        keys = list(self.records[0])
+        return {k: np.concatenate([[0], [r[k] for r in self.records]]).astype(
+            np.float64 if k.endswith("_ms") else np.int64) for k in keys}

@@ -1,0 +1,211 @@
+"""Predictor: the real-time API (pose validation, jump subdivision, StepResult, rollout through it)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import _train_fixtures as fx
+from colgnn_core.errors import InputError
+from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
+from colgnn_core.io import load_sequence
+from colgnn_core.predictor import Predictor, StepResult, tool_step_limits
+from colgnn_core.rollout import rollout
+from test_correction import make_model, oracle_intersects, oracle_step_free
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return fx.scene()
+
+
+@pytest.fixture(scope="module")
+def ckpt():
+    return fx.trained_checkpoint("full")
+
+
+def _pred(scene, kind="noisy", **kw):
+    kw.setdefault("threads", 1)
+    return Predictor(make_model(scene, kind), scene, **kw)
+
+
+def _state(p: Predictor):
+    return p.positions, p.graph_positions, p.tool_pose, p.steps, p._net.x_prev.numpy().copy()
+
+
+def _assert_same_state(a, b):
+    for x, y in zip(a, b):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+
+
+def _contact_poses(scene, frames=12):
+    from colgnn_core.scenes.trajectories import scripted_poses
+
+    return scripted_poses(scene, "press", frames)
+
+
+def test_step_result_from_a_trained_checkpoint(scene, ckpt):
+    from msg_tools.conversions import COLLISION_COUNT_LABELS
+
+    p = Predictor.from_checkpoint(ckpt, threads=1)
+    assert p.scene.name == scene.name and p.correction
+    poses = _contact_poses(scene, 12)
+    for pose in poses[1:]:
+        r = p.step(pose)
+    assert isinstance(r, StepResult)
+    n = scene.object.vertices.shape[0]
+    assert r.positions.shape == (n, 3) and np.isfinite(r.positions).all()
+    np.testing.assert_array_equal(r.surface_faces, scene.object.faces)
+    assert r.surface_vertices.shape == (len(np.unique(scene.object.faces)), 3)
+    np.testing.assert_allclose(r.tool_vertices, scene.tool.world_vertices(poses[-1]), atol=1e-15)
+    np.testing.assert_allclose(r.tool_pose, poses[-1], atol=1e-12)
+    counts = r.collision_counts()
+    assert tuple(counts) == COLLISION_COUNT_LABELS
+    assert counts["vertex_face_after"] == counts["edge_edge_after"] == counts["penetrating_vertices_after"] == 0
+    assert set(r.timings_ms) == {"graph", "gnn", "correction", "total"}
+    assert all(v >= 0 for v in r.timings_ms.values())
+    assert r.timings_ms["total"] >= r.timings_ms["graph"] + r.timings_ms["gnn"] + r.timings_ms["correction"] - 1e-6
+    assert not oracle_intersects(r.positions, scene.object.faces, r.tool_vertices, scene.tool.faces)
+    # reset: back to rest
+    p.reset()
+    np.testing.assert_array_equal(p.positions, scene.object.vertices)
+    np.testing.assert_array_equal(p.tool_pose, scene.tool_rest_pose)
+
+
+def test_threads_and_no_autograd(scene):
+    before = torch.get_num_threads()
+    try:
+        p = _pred(scene, threads=2)
+        assert torch.get_num_threads() == 2 and p.threads == 2
+        r = p.step(_contact_poses(scene, 3)[1])
+        assert isinstance(r.positions, np.ndarray)
+        assert not p._net.x_t.requires_grad
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(InputError, match="threads"):
+        _pred(scene, threads=0)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ("nan", "NaN or inf"),
+    ("inf", "NaN or inf"),
+    ("quat", "not unit length"),
+    ("workspace", "outside the .* workspace"),
+    ("jump", "jump too large"),
+    ("shape", "7 values"),
+])
+def test_bad_pose_is_rejected_and_the_state_is_unchanged(scene, bad, match):
+    p = _pred(scene)
+    twin = _pred(scene)
+    poses = _contact_poses(scene, 8)
+    for pose in poses[1:5]:
+        p.step(pose)
+        twin.step(pose)
+    before = _state(p)
+    pose = poses[5].copy()
+    if bad == "nan":
+        pose[1] = np.nan
+    elif bad == "inf":
+        pose[5] = np.inf
+    elif bad == "quat":
+        pose[3:] *= 1.002
+    elif bad == "workspace":
+        pose[0] = scene.workspace_max[0] + 0.01
+    elif bad == "jump":
+        pose[:3] += [0.0, 0.0, (p.max_substeps + 1) * p.max_translation]
+        pose[:3] = np.minimum(pose[:3], scene.workspace_max)
+        pose[2] = scene.workspace_max[2]
+        assert p.substeps_for(pose) > p.max_substeps
+    elif bad == "shape":
+        pose = pose[:6]
+    with pytest.raises(InputError, match=match) as err:
+        p.step(pose)
+    if bad == "workspace":  # the message names the bounds
+        assert f"{scene.workspace_max[0]:.4g}" in str(err.value)
+    _assert_same_state(before, _state(p))
+    # The next valid step gives exactly what a predictor that never saw the bad pose gives.
+    np.testing.assert_array_equal(p.step(poses[5]).positions, twin.step(poses[5]).positions)
+
+
+def test_slightly_non_unit_quaternion_is_normalised(scene):
+    p = _pred(scene)
+    pose = _contact_poses(scene, 3)[1].copy()
+    pose[3:] *= 1.0005
+    r = p.step(pose)
+    assert abs(np.linalg.norm(r.tool_pose[3:]) - 1.0) < 1e-12
+
+
+def test_step_limits_come_from_the_training_family(scene):
+    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
+
+    trans, rot = tool_step_limits(scene)
+    for seed in split_seeds("train", 3):
+        P = sample_poses(scene, seed, 120)
+        assert np.linalg.norm(np.diff(P[:, :3], axis=0), axis=1).max() <= trans + 1e-12
+    fam = scene.family
+    assert trans >= 1.5 * max(fam["speed"]) * max(fam["retract_speed_factor"]) - 1e-12
+    assert math.radians(2.0) <= rot < math.radians(45.0)
+    assert tool_step_limits(scene, {"tool_step_max_translation": 0.001, "tool_step_max_rotation": 0.01}) == (0.001, 0.01)
+
+
+def test_large_jump_is_split_into_model_steps(scene):
+    p = _pred(scene, "static")
+    start = p.tool_pose
+    target = start.copy()
+    target[2] -= 2.5 * p.max_translation  # down onto the bunny's back
+    assert p.substeps_for(target) == 3
+    r = p.step(target)
+    assert r.substeps == 3 and p.steps == 3
+    np.testing.assert_allclose(r.tool_pose, target, atol=1e-12)
+    # rotation alone
+    q = quat_multiply(axis_angle_quat([1.0, 0.0, 0.0], 3.5 * p.max_rotation), target[3:])
+    turned = np.concatenate([target[:3], q])
+    assert p.substeps_for(turned) == 4
+    assert p.step(turned).substeps == 4
+
+
+def test_fast_jump_onto_the_object_never_tunnels(scene):
+    """A jump of 5 training steps straight into the bunny: split, corrected, no intersection."""
+    from colgnn_core.scenes.trajectories import contact_height
+
+    p = _pred(scene, "static")
+    q = scene.tool_rest_pose[3:]
+    h = contact_height(scene, scene.target[:2], q)
+    above = np.concatenate([[*scene.target[:2], h + 0.003], q])
+    p.step(above)
+    deep = above.copy()
+    deep[2] = h - 0.012
+    r = p.step(deep)
+    assert r.substeps >= 2 and r.vertex_face_before > 0
+    assert not oracle_intersects(r.positions, scene.object.faces, r.tool_vertices, scene.tool.faces)
+
+
+def test_rollout_with_correction_goes_through_the_predictor(scene, ckpt):
+    gt = load_sequence(sorted(fx.dataset_dir().glob("test_*.npz"))[0])
+    seq = rollout(ckpt, gt.tool_poses, correction=True, scene=scene)
+    raw = rollout(ckpt, gt.tool_poses, correction=False, scene=scene)
+    T = gt.frames
+    assert seq.object_positions.shape == raw.object_positions.shape
+    for key in ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after", "fallback",
+                "substeps", "total_ms", "correction_ms"):
+        assert seq.extra[key].shape == (T,)
+    assert not seq.extra["vertex_face_after"].any() and not seq.extra["edge_edge_after"].any()
+    F, TF = seq.object_faces, seq.tool_faces
+    for k in range(1, T):
+        assert not oracle_intersects(seq.object_positions[k], F, seq.tool_positions[k], TF)
+        assert oracle_step_free(seq.object_positions[k - 1], seq.object_positions[k], F, seq.tool_positions[k - 1],
+                                seq.tool_positions[k], TF)
+    # The same network: away from contact the corrected rollout is the raw one, bit for bit.
+    np.testing.assert_array_equal(seq.object_positions[1], raw.object_positions[1])
+
+
+def test_from_checkpoint_needs_a_model(scene):
+    with pytest.raises(InputError, match="no shipped model|no such checkpoint"):
+        Predictor.from_checkpoint("knife_torus")
+    with pytest.raises(InputError, match="max_substeps"):
+        _pred(scene, max_substeps=0)
