@@ -26,8 +26,10 @@ test: setup
 test-slow: setup
 	$(VPY) -m pytest -q -m slow
 
+# The predictor node on sphere_mat's shipped model with a scripted press: separate processes over DDS,
+# a rosbag2 (MCAP) recording, a picture and a summary, all under out/demo (colgnn_ros/demo.py).
 demo: setup
-	$(VENV)/bin/colgnn demo
+	$(VPY) -m colgnn_ros.demo --scene sphere_mat --out out/demo
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

@@ -26,6 +26,9 @@ setup(
         "console_scripts": [
             "colgnn = colgnn_core.cli:main",
             "pose_publisher = colgnn_ros.pose_publisher_node:main",
+            "predictor = colgnn_ros.predictor_node:main",
+            "colgnn_demo = colgnn_ros.demo:main",
+            "colgnn_bench_latency = colgnn_ros.bench_latency:main",
         ],
     },
 )

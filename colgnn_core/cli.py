@@ -103,6 +103,15 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from colgnn_core.bench import bench, format_bench
+
+    result = bench(args.scene, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
+                   correction=not args.no_correction, progress=not args.json)
+    print(json.dumps(result, indent=2) if args.json else format_bench(result))
+    return 0
+
+
 def _model_size(text: str) -> tuple[int, int, int]:
     """Parse ``LATENT/STEPS/LAYERS`` (e.g. 32/5/1)."""
     try:
@@ -206,6 +215,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--quiet", action="store_true")
     handlers["rollout"] = cmd_rollout
 
+    p = sub.add_parser("bench", help="Predictor step time vs the IPC solver on the same poses, in one run")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--checkpoint", default=None, help="default: the shipped model of the scene")
+    p.add_argument("--frames", type=_positive, default=40, help="trajectory length, rest frame included")
+    p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
+    p.add_argument("--no-correction", action="store_true", help="time the raw network only")
+    p.add_argument("--json", action="store_true")
+    handlers["bench"] = cmd_bench
+
     p = sub.add_parser("render", help="render a sequence or rollout file")
     p.add_argument("file")
     p.add_argument("--out", required=True, help="FILE.png (strip of frames) or FILE.gif (animation)")
@@ -218,7 +236,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--json", action="store_true")
     handlers["ccd-check"] = cmd_ccd_check
 
-    p = sub.add_parser("demo", help="the main job on the default scene")
+    p = sub.add_parser("demo", help="ground-truth demo: simulate and render a short sequence with the IPC solver (no model)")
     p.add_argument("--scene", default="sphere_mat")
     p.add_argument("--resolution", choices=("ci", "full"), default="ci")
     p.add_argument("--frames", type=_positive, default=20)

@@ -1,4 +1,4 @@
-"""`colcon build` installs the ament_python package, and the installed `pose_publisher` runs.
+"""`colcon build` installs the ament_python package, and the installed `pose_publisher` and `predictor` run.
 
 colcon (colcon-common-extensions, from PyPI) runs with this interpreter on a copy of the package
 sources in a tmp folder, so no build/ install/ log/ folders appear in the repository:
@@ -24,6 +24,7 @@ import sys
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from rostest_utils import node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
@@ -32,15 +33,20 @@ pytest.importorskip("colcon_core")
 if shutil.which("bash") is None:
     pytest.skip("needs bash to source the colcon setup script", allow_module_level=True)
 
+import _train_fixtures as fx  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
+
+from colgnn_ros.common import OUTPUT_QOS, POSE_QOS  # noqa: E402
+from msg_tools import array_to_pose_stamped, parse_marker_cdr  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable
 PKG = "colgnn_ros"
 # What setup.py / package.xml need; the Python packages are copied whole (minus caches).
 SOURCES = ("setup.py", "setup.cfg", "package.xml", "resource", "colgnn_core", "colgnn_ros", "msg_tools")
-EXECUTABLES = ("colgnn", "pose_publisher")
+EXECUTABLES = ("colgnn", "pose_publisher", "predictor")
 PY_DIR = f"lib/python{sys.version_info.major}.{sys.version_info.minor}/site-packages"
 
 INSPECT = r"""
@@ -143,3 +149,37 @@ def test_installed_pose_publisher_publishes_and_stops_on_sigterm(colcon_install,
             proc.communicate()
     assert proc.returncode == 0, out
     assert "publishing 500 poses ('stab' of sphere_mat)" in out and "Traceback" not in out, out
+
+
+def test_installed_predictor_publishes_meshes_and_stops_on_sigint(colcon_install, node, ros, tmp_path):
+    """`lib/colgnn_ros/predictor` (what `ros2 run colgnn_ros predictor` starts) steps poses into meshes."""
+    _, executor, domain = ros
+    ns = f"/test_{uuid.uuid4().hex[:12]}"
+    checkpoint = fx.trained_checkpoint("full")
+    poses = fx.scene().check_poses(fx.scene().tool_rest_pose[None])
+    meshes: list[bytes] = []
+    node.create_subscription(Marker, f"{ns}/deformed_mesh", meshes.append, OUTPUT_QOS, raw=True)
+    pub = node.create_publisher(PoseStamped, f"{ns}/tool_pose", POSE_QOS)
+    inst = colcon_install.resolve()
+    command = (f'exec "{inst}/lib/{PKG}/predictor" --ros-args -r __ns:={ns} -r /diagnostics:={ns}/diagnostics '
+               f"-p scene:={fx.SCENE} -p checkpoint:={checkpoint} -p threads:=1")
+    proc = subprocess.Popen(sourced(inst, command), cwd=tmp_path, env=ros_env(domain),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert spin_until(executor, lambda: pub.get_subscription_count() == 1 or proc.poll() is not None,
+                          timeout=60.0), "the installed predictor did not subscribe"
+        for _ in range(30):  # best-effort: repeat the (rest) pose until the node's reader has matched ours
+            pub.publish(array_to_pose_stamped(poses[0], "world", node.get_clock().now().nanoseconds))
+            if spin_until(executor, lambda: len(meshes) >= 2, timeout=1.0):
+                break
+        assert len(meshes) >= 2, "no mesh from the installed node"
+        proc.send_signal(signal.SIGINT)  # `exec`: the bash pid is the node's
+        out, _ = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, out
+    assert f"scene {fx.SCENE} (ci)" in out and "Traceback" not in out, out
+    m = parse_marker_cdr(meshes[-1])
+    assert m.corners.shape == (len(fx.scene().object.faces), 3, 3) and np.isfinite(m.corners).all()

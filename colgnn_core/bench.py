@@ -1,0 +1,116 @@
+"""``colgnn bench``: the real-time Predictor against the IPC solver, on the same scene and poses, in one run.
+
+The trajectory is the first test trajectory of the scene's family. The IPC solver simulates it first (its per-step
+cost is ``ipc_ms`` and its frames are the reference of ``rollout_rmse``); then the Predictor, started from the same
+frame 0, steps through the same poses. Medians and ratios come from this one run; absolute times on a shared machine
+are noisy, so quote both.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import torch
+
+from colgnn_core.errors import InputError
+
+
+def _stats(values: list[float] | np.ndarray) -> dict[str, float]:
+    """Median and p95 (ms) of a non-empty list."""
+    v = np.asarray(values, dtype=np.float64)
+    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
+
+
+def rmse_fraction(pred: np.ndarray, truth: np.ndarray, diagonal: float) -> np.ndarray:
+    """Per-frame position RMSE [T] of ``pred`` vs ``truth`` [T,N,3], as a fraction of the bbox ``diagonal``."""
+    return np.sqrt(((pred - truth) ** 2).sum(-1).mean(-1)) / diagonal
+
+
+def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
+          correction: bool = True, progress: bool = False) -> dict:
+    """Benchmark one scene. Returns the JSON fields of the ``colgnn bench`` contract.
+
+    Args:
+        scene_name: scene whose shipped model is used unless ``checkpoint`` is given; the resolution is the
+            checkpoint's.
+        frames: trajectory length including the rest frame (≥ 3).
+        threads: torch threads of the Predictor (the solver uses numpy/scipy's own).
+    """
+    from colgnn_core.predictor import Predictor
+    from colgnn_core.scenes import scene_names
+    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
+    from colgnn_core.sim.dataset import simulate_sequence
+
+    if scene_name not in scene_names():
+        raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
+    if frames < 3:
+        raise InputError(f"frames must be >= 3, got {frames}")
+    predictor = Predictor.from_checkpoint(checkpoint or scene_name, correction=correction, threads=threads)
+    scene = predictor.scene
+    if scene.name != scene_name:
+        raise InputError(f"checkpoint is for scene {scene.name!r}, not {scene_name!r}")
+    poses = sample_poses(scene, split_seeds("test", 1)[0], frames)
+
+    truth = simulate_sequence(scene, poses, progress=progress)
+    ipc_ms = truth.extra["step_ms"][1:]
+
+    predictor.reset(positions=truth.object_positions[0], tool_pose=poses[0])
+    stages: dict[str, list[float]] = {"total": [], "graph": [], "gnn": [], "correction": []}
+    positions = [truth.object_positions[0]]
+    before = after = fallbacks = 0
+    for pose in poses[1:]:
+        t0 = time.perf_counter()
+        res = predictor.step(pose)
+        wall = 1e3 * (time.perf_counter() - t0)
+        stages["total"].append(wall)
+        for k in ("graph", "gnn", "correction"):
+            stages[k].append(float(res.timings_ms.get(k, 0.0)))
+        positions.append(res.positions)
+        before += res.vertex_face_before + res.edge_edge_before
+        after += res.vertex_face_after + res.edge_edge_after
+        fallbacks += int(res.fallback)
+    err = rmse_fraction(np.stack(positions), truth.object_positions, scene.bbox_diagonal())
+    total = _stats(stages["total"])
+    ipc = _stats(ipc_ms)
+    return {
+        "scene": scene.name,
+        "resolution": scene.resolution,
+        "checkpoint": str(checkpoint or f"shipped:{scene_name}"),
+        "correction": correction,
+        "frames": frames,
+        "total_ms": total,
+        "graph_ms": _stats(stages["graph"]),
+        "gnn_ms": _stats(stages["gnn"]),
+        "correction_ms": _stats(stages["correction"]),
+        "ipc_ms": ipc,
+        "speedup_vs_ipc": ipc["median"] / total["median"],
+        "rollout_rmse": {"step_1": float(err[1]), "step_10": float(err[min(10, len(err) - 1)]),
+                         "all": float(err[1:].mean())},
+        "crossings_before_correction": int(before),
+        "crossings_after_correction": int(after),
+        "fallbacks": int(fallbacks),
+        "threads": int(torch.get_num_threads()),
+        "vertices": int(len(scene.object.vertices)),
+        "surface_vertices": int(len(scene.object.surface_vertices)),
+        "edges": int(len(scene.object.edges)),
+        "faces": int(len(scene.object.faces)),
+        "load_average_1min": float(os.getloadavg()[0]),
+    }
+
+
+def format_bench(r: dict) -> str:
+    """A readable table of one :func:`bench` result."""
+    rows = [("total", r["total_ms"]), ("graph", r["graph_ms"]), ("gnn", r["gnn_ms"]),
+            ("correction", r["correction_ms"]), ("IPC solver", r["ipc_ms"])]
+    lines = [f"{r['scene']} ({r['resolution']}): {r['vertices']} vertices, {r['edges']} surface edges, "
+             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} threads, load {r['load_average_1min']:.1f}",
+             f"{'stage':<12}{'median ms':>11}{'p95 ms':>10}"]
+    lines += [f"{name:<12}{s['median']:>11.2f}{s['p95']:>10.2f}" for name, s in rows]
+    e = r["rollout_rmse"]
+    lines.append(f"speedup vs IPC: {r['speedup_vs_ipc']:.0f}x   rollout RMSE (fraction of bbox diagonal): "
+                 f"step 1 {e['step_1']:.2e}, step 10 {e['step_10']:.2e}, all {e['all']:.2e}")
+    lines.append(f"crossings before/after correction: {r['crossings_before_correction']}/"
+                 f"{r['crossings_after_correction']}, fallbacks {r['fallbacks']}")
+    return "\n".join(lines)
