@@ -33,7 +33,9 @@ def plane_section(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, n
     """Segments [K,2,3] where a triangle mesh crosses the plane through ``origin`` with unit ``normal``."""
     d = (vertices - origin) @ normal
     tri_d = d[faces]                                   # [F,3]
-    cut = (tri_d.min(1) < 0) & (tri_d.max(1) > 0)
+    # Sides are "d < 0" and "d >= 0", so a vertex lying exactly on the plane belongs to one side and a triangle
+    # touching the plane there still yields its segment (no gaps on symmetric meshes).
+    cut = (tri_d.min(1) < 0) & (tri_d.max(1) >= 0)
     tri, td = vertices[faces[cut]], tri_d[cut]        # [K,3,3], [K,3]
     points = []
     for i, j in ((0, 1), (1, 2), (2, 0)):

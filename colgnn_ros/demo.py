@@ -38,7 +38,6 @@ from colgnn_core.errors import InputError
 MESSAGE_WAIT_S = 60.0     # start-up budget: both nodes up and matched (torch + model load)
 QUIET_AFTER_S = 1.0       # after the last pose: stop once no mesh arrived for this long
 DIAG_NAME = "predictor: {scene}"
-SECTION_NUDGE_M = 5e-4    # see render()
 
 
 def child_env(domain: int) -> dict[str, str]:
@@ -130,13 +129,8 @@ def render(rec: dict, scene, out: Path, label: str) -> Path:
     from colgnn_core.io import Sequence
     from colgnn_core.render import render_strip
 
-    # render_strip cuts its cross-section through the tool pose; on the symmetric sphere and mat meshes that plane
-    # runs through mesh vertices, and plane_section drops the triangles that only touch it (gaps in the outlines).
-    # The poses only place that plane here, so shift it SECTION_NUDGE_M along world x, off the vertices.
-    poses = rec["poses"].copy()
-    poses[:, 0] += SECTION_NUDGE_M
     seq = Sequence(object_positions=rec["object"], object_faces=rec["faces"], tool_positions=rec["tool"],
-                   tool_faces=np.asarray(scene.tool.faces, dtype=np.int64), tool_poses=poses,
+                   tool_faces=np.asarray(scene.tool.faces, dtype=np.int64), tool_poses=rec["poses"],
                    dt=float(scene.dt)).validate("recording")
     return render_strip([seq], [label], out, frames=strip_frames(rec["poses"][:, 2]))
 
