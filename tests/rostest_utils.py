@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import random
 import re
+import subprocess
 import time
 
 import pytest
@@ -72,3 +73,14 @@ def node(ros, request):
     yield n
     executor.remove_node(n)
     n.destroy_node()
+
+
+def finish(proc: "subprocess.Popen", timeout: float = 15.0) -> str:
+    """Wait for ``proc``; kill it if it does not end. Returns its output."""
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return out

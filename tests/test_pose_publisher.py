@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+from rostest_utils import finish, node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
@@ -47,17 +47,6 @@ def start_publisher(domain: int, *params: str, topic: str = "tool_pose") -> subp
         args += ["-p", p]
     return subprocess.Popen(args, cwd=REPO, env=ros_env(domain, PYTHONPATH=str(REPO)),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def finish(proc: subprocess.Popen, timeout: float = 15.0) -> str:
-    """Wait for ``proc``; kill it if it does not end. Returns its output."""
-    try:
-        out, _ = proc.communicate(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    return out
 
 
 def subscribe(node, topic: str) -> list[PoseStamped]:

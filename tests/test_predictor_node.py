@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+from rostest_utils import finish, node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
 
 import _train_fixtures as fx  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -235,16 +235,6 @@ def start_predictor(domain: int, *params: str, ns: str = "") -> subprocess.Popen
         args += ["-p", p]
     return subprocess.Popen(args, cwd=REPO, env=ros_env(domain, PYTHONPATH=str(REPO)),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def finish(proc: subprocess.Popen, timeout: float = 15.0) -> str:
-    try:
-        out, _ = proc.communicate(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    return out
 
 
 def test_node_process_through_dds_matches_the_predictor_and_stops_on_sigterm(node, ros, checkpoint, poses):
