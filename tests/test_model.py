@@ -208,3 +208,21 @@ def test_frame_from_sequence_picks_graph_nodes_and_times():
     assert torch.equal(f0.x_prev, f0.x_t)  # starts at rest
     with pytest.raises(ValueError):
         frame_from_sequence(tpl, obj, tools, poses, 3)
+
+
+def test_split_first_edge_layer_equals_concatenated_form():
+    """edge_mlp_input is the first Linear applied to [h_s, h_r, e], without the concatenation."""
+    import torch
+    from colgnn_core.learn.core_model import EdgeSet, edge_mlp_input
+
+    g = torch.Generator().manual_seed(3)
+    h = torch.randn(7, 5, generator=g, dtype=torch.float64)
+    feats = torch.randn(11, 5, generator=g, dtype=torch.float64)
+    senders = torch.randint(0, 7, (11,), generator=g)
+    receivers = torch.randint(0, 7, (11,), generator=g)
+    first = torch.nn.Linear(15, 4).double()
+    expect = first(torch.cat([h[senders], h[receivers], feats], dim=-1))
+    got = edge_mlp_input(first, h, EdgeSet(feats, senders, receivers))
+    torch.testing.assert_close(got, expect, rtol=1e-12, atol=1e-12)
+    empty = EdgeSet(feats[:0], senders[:0], receivers[:0])
+    assert edge_mlp_input(first, h, empty).shape == (0, 4)

@@ -62,15 +62,28 @@ def sum_to_receivers(messages: torch.Tensor, receivers: torch.Tensor, num_nodes:
     return out.index_add_(0, receivers, messages)
 
 
+def edge_mlp_input(first: nn.Linear, h: torch.Tensor, es: EdgeSet) -> torch.Tensor:
+    """The first layer of an edge MLP on ``[h_sender, h_receiver, e]`` without building that [E,3D] block.
+
+    ``W [h_s, h_r, e] + b = (h W_s^T)[senders] + (h W_r^T)[receivers] + e W_e^T + b``: the node terms are
+    projected once per node ([N,D]) and gathered per edge, which saves two thirds of the edge-level multiply and
+    the concatenation. Same weights and the same function as the concatenated form (up to float rounding).
+    """
+    d = h.shape[1]
+    w = first.weight                                         # [out, 2D + F_e]
+    node_proj = h @ torch.cat([w[:, :d], w[:, d:2 * d]], dim=0).T   # [N, 2*out]: sender and receiver parts
+    out = w.shape[0]
+    x = torch.addmm(first.bias, es.features, w[:, 2 * d:].T)
+    return x + node_proj[es.senders, :out] + node_proj[es.receivers, out:]
+
+
 class GraphNetBlock(nn.Module):
     """One message-passing step over several edge sets, with residual connections."""
 
     def __init__(self, latent: int, mlp_layers: int, edge_set_names: tuple[str, ...]):
         super().__init__()
         self.edge_set_names = tuple(edge_set_names)
-        # The first Linear of each edge MLP acts on [h_s, h_r, e], i.e. W_s h_s + W_r h_r + W_e e.
-        # The node terms can later be computed once per node ([N,D]) and gathered per edge instead of
-        # multiplying the gathered [E,2D] block: a real-time optimisation, kept out of this reference path.
+        # The first Linear of each edge MLP acts on [h_s, h_r, e] (see edge_mlp_input).
         self.edge_mlps = nn.ModuleDict({n: make_mlp(3 * latent, latent, latent, mlp_layers) for n in self.edge_set_names})
         self.node_mlp = make_mlp((1 + len(self.edge_set_names)) * latent, latent, latent, mlp_layers)
 
@@ -81,8 +94,8 @@ class GraphNetBlock(nn.Module):
         aggregated = [h]
         for name in self.edge_set_names:
             es = graph.edge_sets[name]
-            inp = torch.cat([h[es.senders], h[es.receivers], es.features], dim=-1)
-            e_new = self.edge_mlps[name](inp)
+            mlp = self.edge_mlps[name]
+            e_new = mlp[1:](edge_mlp_input(mlp[0], h, es))
             aggregated.append(sum_to_receivers(e_new, es.receivers, n))
             new_edges[name] = replace(es, features=es.features + e_new)  # residual on edges
         h_new = h + self.node_mlp(torch.cat(aggregated, dim=-1))  # residual on nodes
