@@ -112,6 +112,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from colgnn_core.evaluate import evaluate, format_markdown
+
+    result = evaluate(args.scene, checkpoint=args.checkpoint, data_dir=args.data, out_dir=args.out,
+                      correction_modes=("raw",) if args.no_correction else ("raw", "corrected"),
+                      exact=not args.no_exact, max_sequences=args.max_sequences, progress=not args.quiet)
+    print(format_markdown(result))
+    print("wrote " + ", ".join(result["files"].values()))
+    return 0
+
+
 def _model_size(text: str) -> tuple[int, int, int]:
     """Parse ``LATENT/STEPS/LAYERS`` (e.g. 32/5/1)."""
     try:
@@ -223,6 +234,17 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
     p.add_argument("--json", action="store_true")
     handlers["bench"] = cmd_bench
+
+    p = sub.add_parser("evaluate", help="rollout accuracy and collision metrics on a dataset's test sequences")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--checkpoint", default=None, help="default: the shipped model of the scene")
+    p.add_argument("--data", default=None, help="dataset folder with test_XXXX.npz (made by `colgnn generate`)")
+    p.add_argument("--out", required=True, help="output folder: metrics.json, metrics.md, rmse_over_time.png")
+    p.add_argument("--no-exact", action="store_true", help="crossings by the narrow phase instead of the exact CCD")
+    p.add_argument("--no-correction", action="store_true", help="evaluate the raw network only")
+    p.add_argument("--max-sequences", type=_positive, default=None, help="only the first N test sequences")
+    p.add_argument("--quiet", action="store_true", help="no per-sequence lines")
+    handlers["evaluate"] = cmd_evaluate
 
     p = sub.add_parser("render", help="render a sequence or rollout file")
     p.add_argument("file")

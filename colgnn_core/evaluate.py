@@ -1,0 +1,284 @@
+"""``colgnn evaluate``: accuracy and collision metrics of a model on a dataset's held-out test sequences.
+
+For every ``test_XXXX.npz`` of a dataset folder (``colgnn generate``), the model is rolled out on the
+sequence's tool poses from its frame 0 (:func:`colgnn_core.rollout.rollout`), once per mode: ``raw`` (the
+network alone) and ``corrected`` (through the Predictor's collision-aware correction). Reported
+(ARCHITECTURE.md, "Metrics"):
+
+* rollout RMSE of the positions (all mesh vertices) as a fraction of the object's rest bounding-box diagonal
+  (:func:`colgnn_core.bench.rmse_fraction`) at steps 1, 10, 50 (where the sequences are long enough) and over
+  all steps (per sequence the mean of steps 1..T-1), mean ± std over the test sequences, and the per-step
+  curve;
+* crossings over [t, t+1] (N_vf, d_vf mean/max, N_ee, d_ee mean/max) and penetrations per frame of the
+  ground truth and of each rollout (:func:`colgnn_core.collision.metrics.sequence_metrics`, exact oracle
+  unless ``exact=False``). Across sequences: N_* is crossings per step (all steps pooled), d_*_mean the mean
+  depth over every crossing pair, d_*_max the largest; "intersecting frames" counts frames with any
+  penetration (an object vertex inside the tool, a tool vertex inside the object, or intersecting triangles).
+
+Outputs in ``out_dir``: ``metrics.json`` (atomic), ``metrics.md`` (Markdown table), ``rmse_over_time.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from colgnn_core.bench import rmse_fraction
+from colgnn_core.collision.metrics import PENETRATION_KEYS, sequence_metrics
+from colgnn_core.errors import InputError
+from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
+
+MODES = ("raw", "corrected")
+RMSE_STEPS = (1, 10, 50)
+ROW_LABELS = {"ground_truth": "ground truth", "raw": "raw network", "corrected": "corrected"}
+
+
+def _mean_std(values) -> dict:
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        return {"mean": None, "std": None, "n": 0}
+    return {"mean": float(v.mean()), "std": float(v.std()), "n": int(v.size)}
+
+
+def _collision_aggregate(per_seq: list[dict]) -> dict:
+    """Pool the per-sequence :func:`sequence_metrics` results (see the module docstring)."""
+    steps = sum(len(m["steps"]["N_vf"]) for m in per_seq)
+    frames = sum(m["frames_count"] for m in per_seq)
+    out: dict = {"steps": int(steps), "frames": int(frames)}
+    for kind in ("vf", "ee"):
+        n = np.concatenate([np.asarray(m["steps"][f"N_{kind}"], dtype=np.float64) for m in per_seq])
+        d = np.concatenate([np.asarray(m["steps"][f"d_{kind}_mean"], dtype=np.float64) for m in per_seq])
+        dmax = np.concatenate([np.asarray(m["steps"][f"d_{kind}_max"], dtype=np.float64) for m in per_seq])
+        total = float(n.sum())
+        out[f"N_{kind}"] = total / steps if steps else 0.0
+        out[f"N_{kind}_total"] = int(total)
+        out[f"N_{kind}_max"] = int(n.max()) if n.size else 0
+        out[f"d_{kind}_mean"] = float((n * d).sum() / total) if total > 0 else 0.0
+        out[f"d_{kind}_max"] = float(dmax.max()) if dmax.size else 0.0
+    hit = np.concatenate([np.any([np.asarray(m["frames"][k]) > 0 for k in PENETRATION_KEYS], axis=0)
+                          for m in per_seq])
+    out["intersecting_frames"] = int(hit.sum())
+    out["intersecting_frames_fraction"] = float(hit.mean()) if hit.size else 0.0
+    for k in PENETRATION_KEYS:
+        v = np.concatenate([np.asarray(m["frames"][k], dtype=np.float64) for m in per_seq])
+        out[f"{k}_total"] = int(v.sum())
+        out[f"{k}_max"] = int(v.max()) if v.size else 0
+    return out
+
+
+def _rmse_summary(curves: list[np.ndarray]) -> dict:
+    """RMSE at RMSE_STEPS and over all steps (mean ± std over sequences) plus the mean/std curve."""
+    out: dict = {}
+    for k in RMSE_STEPS:
+        out[f"step_{k}"] = _mean_std([c[k] for c in curves if len(c) > k])
+    out["all"] = _mean_std([float(c[1:].mean()) for c in curves if len(c) > 1])
+    T = max(len(c) for c in curves)
+    mean, std, n = [], [], []
+    for t in range(T):
+        v = [c[t] for c in curves if len(c) > t]
+        mean.append(float(np.mean(v)))
+        std.append(float(np.std(v)))
+        n.append(len(v))
+    out["curve"] = {"mean": mean, "std": std, "n": n}
+    return out
+
+
+def _test_files(data_dir, scene) -> list[Path]:
+    from colgnn_core.learn.data import check_manifest, dataset_files, read_manifest
+
+    if data_dir is None:
+        raise InputError("no test data: pass --data DIR, a dataset folder made by `colgnn generate` "
+                         "(datasets are not shipped)")
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise InputError(f"no such dataset folder (--data): {data_dir}")
+    check_manifest(read_manifest(data_dir), scene, str(data_dir / "manifest.json"))
+    return dataset_files(data_dir, "test")
+
+
+def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evaluate",
+             correction_modes=MODES, exact: bool = True, max_sequences: int | None = None,
+             progress: bool = True) -> dict:
+    """Evaluate a model on the test sequences of ``data_dir`` and write the reports into ``out_dir``.
+
+    Args:
+        scene_name: the scene; ``checkpoint`` defaults to its shipped model (resolution: the checkpoint's).
+        checkpoint: checkpoint path (or a LoadedCheckpoint).
+        data_dir: dataset folder with ``test_XXXX.npz`` (and optionally ``manifest.json``) of this scene and
+            resolution. Required (InputError naming ``--data`` when absent).
+        out_dir: output folder (created).
+        correction_modes: any of 'raw', 'corrected'.
+        exact: exact CCD oracle for the crossings (False: the project's narrow phase).
+        max_sequences: evaluate only the first N test sequences.
+
+    Returns:
+        The content of ``metrics.json`` (with 'files': the paths written).
+    """
+    from colgnn_core.learn.data import load_checked_sequence
+    from colgnn_core.rollout import load_model, rollout
+    from colgnn_core.scenes import load_scene, scene_names
+
+    if scene_name not in scene_names():
+        raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
+    modes = tuple(correction_modes)
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes or len(set(modes)) != len(modes):
+        raise InputError(f"correction_modes must be distinct values of {MODES}, got {modes}")
+    if max_sequences is not None and max_sequences < 1:
+        raise InputError(f"max_sequences must be >= 1, got {max_sequences}")
+    if data_dir is None:
+        _test_files(None, None)
+    loaded = load_model(checkpoint if checkpoint is not None else scene_name)
+    if loaded.meta.scene != scene_name:
+        raise InputError(f"checkpoint is for scene {loaded.meta.scene!r}, not {scene_name!r}")
+    scene = load_scene(loaded.meta.scene, loaded.meta.resolution)
+    files = _test_files(data_dir, scene)
+    if max_sequences is not None:
+        files = files[:max_sequences]
+    out = ensure_writable_dir(out_dir)
+    diagonal = scene.bbox_diagonal()
+
+    t_start = time.perf_counter()
+    curves: dict[str, list[np.ndarray]] = {m: [] for m in modes}
+    coll: dict[str, list[dict]] = {m: [] for m in ("ground_truth",) + modes}
+    per_sequence = []
+    for i, path in enumerate(files):
+        load_checked_sequence(path, scene)  # InputError naming the file if it is not of this scene
+        gt = load_sequence(path)
+        rec: dict = {"file": path.name, "frames": int(gt.frames)}
+        t0 = time.perf_counter()
+        m = sequence_metrics(gt, exact=exact)
+        coll["ground_truth"].append(m)
+        rec["ground_truth"] = {"collisions": m["summary"], "metrics_s": time.perf_counter() - t0}
+        for mode in modes:
+            t0 = time.perf_counter()
+            seq = rollout(loaded, gt.tool_poses, correction=(mode == "corrected"), scene=scene,
+                          initial_positions=gt.object_positions[0])
+            t_roll = time.perf_counter() - t0
+            finite = bool(np.isfinite(seq.object_positions).all())
+            if not finite:
+                raise InputError(f"{path.name}: the {mode} rollout is not finite")
+            err = rmse_fraction(seq.object_positions, gt.object_positions, diagonal)
+            curves[mode].append(err)
+            t0 = time.perf_counter()
+            m = sequence_metrics(seq, exact=exact)
+            coll[mode].append(m)
+            totals = {k: int(np.asarray(v).sum()) for k, v in seq.extra.items()
+                      if k not in ("step_ms",) and not k.endswith("_ms") and np.asarray(v).dtype.kind in "iu"}
+            rec[mode] = {"rmse": [float(e) for e in err], "rmse_all": float(err[1:].mean()) if len(err) > 1 else 0.0,
+                         "collisions": m["summary"], "extra_totals": totals,
+                         "step_ms_median": float(np.median(seq.extra["step_ms"][1:])) if gt.frames > 1 else 0.0,
+                         "rollout_s": t_roll, "metrics_s": time.perf_counter() - t0}
+        per_sequence.append(rec)
+        if progress:
+            parts = [f"{mode} RMSE all {rec[mode]['rmse_all']:.2e}, N_vf {rec[mode]['collisions']['N_vf_total']:.0f}"
+                     for mode in modes]
+            print(f"[{i + 1}/{len(files)}] {path.name}: " + "; ".join(parts), flush=True)
+
+    rows: dict = {"ground_truth": {"rmse": None, "collisions": _collision_aggregate(coll["ground_truth"])}}
+    for mode in modes:
+        rows[mode] = {"rmse": _rmse_summary(curves[mode]), "collisions": _collision_aggregate(coll[mode])}
+    result = {
+        "scene": scene.name,
+        "resolution": scene.resolution,
+        "checkpoint": str(checkpoint) if checkpoint is not None else f"shipped:{scene_name}",
+        "variant": loaded.meta.variant,
+        "data_dir": str(data_dir),
+        "exact": bool(exact),
+        "modes": list(modes),
+        "sequences": [p.name for p in files],
+        "frames": [int(r["frames"]) for r in per_sequence],
+        "bbox_diagonal": float(diagonal),
+        "rmse_steps": list(RMSE_STEPS),
+        "rows": rows,
+        "per_sequence": per_sequence,
+        "wall_s": time.perf_counter() - t_start,
+    }
+    files_out = {"json": out / "metrics.json", "markdown": out / "metrics.md", "plot": out / "rmse_over_time.png"}
+    result["files"] = {k: str(v) for k, v in files_out.items()}
+    with atomic_write(files_out["markdown"], "w") as fh:
+        fh.write(format_markdown(result))
+    plot_rmse(result, files_out["plot"])
+    with atomic_write(files_out["json"], "w") as fh:
+        json.dump(result, fh, indent=1)
+    return result
+
+
+def _fmt_rmse(s: dict | None) -> str:
+    if s is None or s["mean"] is None:
+        return "–"
+    return f"{100 * s['mean']:.3g} ± {100 * s['std']:.2g}"
+
+
+def format_markdown(result: dict) -> str:
+    """The Markdown report of :func:`evaluate` (RMSE in % of the bbox diagonal, depths in mm)."""
+    lines = [f"# colgnn evaluate: {result['scene']} ({result['resolution']})", "",
+             f"Checkpoint `{result['checkpoint']}` (variant {result['variant']}), "
+             f"{len(result['sequences'])} test sequence(s) from `{result['data_dir']}` "
+             f"({min(result['frames'])}–{max(result['frames'])} frames), bbox diagonal "
+             f"{result['bbox_diagonal']:.4f} m, {'exact CCD oracle' if result['exact'] else 'narrow-phase CCD'}.", "",
+             "RMSE: % of the bbox diagonal, mean ± std over sequences. N_vf, N_ee: crossings per step; "
+             "d: depth on the wrong side at t+1 (mm), mean over all crossing pairs and max. "
+             "Intersecting frames: frames with any penetration.", ""]
+    head = ["row"] + [f"RMSE@{k} (%)" for k in result["rmse_steps"]] + ["RMSE all (%)", "N_vf", "d_vf mean", "d_vf max",
+                                                                        "N_ee", "d_ee mean", "d_ee max",
+                                                                        "intersecting frames"]
+    lines.append("| " + " | ".join(head) + " |")
+    lines.append("|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|")
+    for key, row in result["rows"].items():
+        r, c = row["rmse"], row["collisions"]
+        cells = [ROW_LABELS.get(key, key)]
+        if r is None:  # ground truth against itself: 0 at every step the sequences reach
+            cells += ["0" if max(result["frames"]) > k else "–" for k in result["rmse_steps"]] + ["0"]
+        else:
+            cells += [_fmt_rmse(r[f"step_{k}"]) for k in result["rmse_steps"]] + [_fmt_rmse(r["all"])]
+        for kind in ("vf", "ee"):
+            cells += [f"{c[f'N_{kind}']:.2f}", f"{1e3 * c[f'd_{kind}_mean']:.3f}", f"{1e3 * c[f'd_{kind}_max']:.3f}"]
+        cells.append(f"{c['intersecting_frames']}/{c['frames']}")
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def plot_rmse(result: dict, path: Path) -> Path:
+    """RMSE over time (mean ± std band over sequences) per mode, as a PNG (matplotlib, Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    for mode in result["modes"]:
+        curve = result["rows"][mode]["rmse"]["curve"]
+        mean, std = 100 * np.asarray(curve["mean"]), 100 * np.asarray(curve["std"])
+        t = np.arange(len(mean))
+        ax.plot(t, mean, label=ROW_LABELS.get(mode, mode), linestyle="--" if mode == "corrected" else "-")
+        ax.fill_between(t, mean - std, mean + std, alpha=0.25)
+    ax.set_xlabel("step")
+    ax.set_ylabel("RMSE (% of bbox diagonal)")
+    ax.set_title(f"{result['scene']} ({result['resolution']}): rollout error, "
+                 f"{len(result['sequences'])} test sequence(s)")
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_write(path, "wb") as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+    return path
+
+
+def _finite(obj) -> bool:
+    """True when every number in a JSON-like structure is finite (None allowed)."""
+    if isinstance(obj, dict):
+        return all(_finite(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return all(_finite(v) for v in obj)
+    if isinstance(obj, float):
+        return math.isfinite(obj)
+    return True

@@ -1,0 +1,99 @@
+"""``colgnn evaluate`` on the tiny trained model and tiny real dataset of _train_fixtures."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import _train_fixtures as fx
+from colgnn_core.bench import rmse_fraction
+from colgnn_core.cli import main
+from colgnn_core.errors import InputError
+from colgnn_core.evaluate import _finite, evaluate
+from colgnn_core.io import load_sequence
+from colgnn_core.rollout import rollout
+
+torch.set_num_threads(1)
+
+CROSSING = ("N_vf", "d_vf_mean", "d_vf_max", "N_ee", "d_ee_mean", "d_ee_max")
+
+
+@pytest.fixture(scope="module")
+def result():
+    out = fx.tmp_dir("evaluate")
+    return evaluate(fx.SCENE, checkpoint=fx.trained_checkpoint("full"), data_dir=fx.dataset_dir(), out_dir=out,
+                    progress=False)
+
+
+def test_evaluate_reports_finite_metrics_and_writes_the_files(result):
+    for key in ("json", "markdown", "plot"):
+        assert (fx.tmp_dir("evaluate") / result["files"][key].split("/")[-1]).is_file()
+    data = json.loads((fx.tmp_dir("evaluate") / "metrics.json").read_text())
+    assert data["scene"] == fx.SCENE and data["resolution"] == "ci" and data["modes"] == ["raw", "corrected"]
+    assert data["sequences"] == [p.name for p in sorted(fx.dataset_dir().glob("test_*.npz"))]
+    assert set(data["rows"]) == {"ground_truth", "raw", "corrected"}
+    assert _finite(data)
+    for key, row in data["rows"].items():
+        c = row["collisions"]
+        for k in CROSSING + ("intersecting_frames", "frames", "steps"):
+            assert k in c and np.isfinite(c[k]) and c[k] >= 0
+        if key == "ground_truth":
+            assert row["rmse"] is None
+            continue
+        r = row["rmse"]
+        for k in ("step_1", "step_10", "all"):
+            assert np.isfinite(r[k]["mean"]) and np.isfinite(r[k]["std"]) and r[k]["n"] == len(data["sequences"])
+        assert r["step_50"]["n"] == 0 and r["step_50"]["mean"] is None  # FRAMES < 51
+        assert len(r["curve"]["mean"]) == fx.FRAMES
+    # the solver's ground truth never crosses or penetrates the tool
+    gt = data["rows"]["ground_truth"]["collisions"]
+    assert gt["N_vf_total"] == 0 and gt["N_ee_total"] == 0 and gt["intersecting_frames"] == 0
+    md = (fx.tmp_dir("evaluate") / "metrics.md").read_text()
+    assert "| ground truth |" in md and "| raw network |" in md and "| corrected |" in md and "RMSE@10" in md
+    assert (fx.tmp_dir("evaluate") / "rmse_over_time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rmse_matches_a_hand_computation(result):
+    scene, ckpt = fx.scene(), fx.trained_checkpoint("full")
+    step1 = []
+    for path, rec in zip(sorted(fx.dataset_dir().glob("test_*.npz")), result["per_sequence"]):
+        gt = load_sequence(path)
+        seq = rollout(ckpt, gt.tool_poses, scene=scene, initial_positions=gt.object_positions[0])
+        err = rmse_fraction(seq.object_positions, gt.object_positions, scene.bbox_diagonal())
+        assert rec["file"] == path.name and rec["raw"]["rmse"][0] == 0.0  # same frame 0 by construction
+        np.testing.assert_allclose(rec["raw"]["rmse"][1], err[1], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(rec["raw"]["rmse_all"], err[1:].mean(), rtol=1e-12, atol=0)
+        step1.append(err[1])
+    raw = result["rows"]["raw"]["rmse"]
+    assert raw["curve"]["mean"][0] == 0.0 and raw["step_1"]["mean"] == pytest.approx(np.mean(step1), rel=1e-12)
+    assert raw["step_1"]["std"] == pytest.approx(np.std(step1), rel=1e-9, abs=1e-15)
+
+
+def test_missing_data_is_an_input_error(tmp_path, capsys):
+    with pytest.raises(InputError, match="--data"):
+        evaluate(fx.SCENE, checkpoint=fx.trained_checkpoint("full"), data_dir=None, out_dir=tmp_path)
+    with pytest.raises(InputError, match="no such dataset folder"):
+        evaluate(fx.SCENE, checkpoint=fx.trained_checkpoint("full"), data_dir=tmp_path / "nope", out_dir=tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="test_XXXX"):
+        evaluate(fx.SCENE, checkpoint=fx.trained_checkpoint("full"), data_dir=empty, out_dir=tmp_path)
+    with pytest.raises(InputError, match="not 'sphere_mat'"):
+        evaluate("sphere_mat", checkpoint=fx.trained_checkpoint("full"), data_dir=fx.dataset_dir(), out_dir=tmp_path)
+    rc = main(["evaluate", "--scene", fx.SCENE, "--checkpoint", str(fx.trained_checkpoint("full")),
+               "--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o")])
+    assert rc == 2 and "no such dataset folder" in capsys.readouterr().err
+    rc = main(["evaluate", "--scene", fx.SCENE, "--checkpoint", str(fx.trained_checkpoint("full")),
+               "--out", str(tmp_path / "o")])
+    assert rc == 2 and "--data" in capsys.readouterr().err
+
+
+def test_cli_raw_only_narrow_phase(tmp_path, capsys):
+    rc = main(["evaluate", "--scene", fx.SCENE, "--checkpoint", str(fx.trained_checkpoint("full")),
+               "--data", str(fx.dataset_dir()), "--out", str(tmp_path), "--no-exact", "--no-correction",
+               "--max-sequences", "1", "--quiet"])
+    assert rc == 0 and "| raw network |" in capsys.readouterr().out
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert data["modes"] == ["raw"] and not data["exact"] and len(data["sequences"]) == 1
+    assert set(data["rows"]) == {"ground_truth", "raw"} and (tmp_path / "rmse_over_time.png").is_file()
