@@ -309,10 +309,8 @@ class PredictorStepper:
 
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
         p = self.predictor
-        x0 = np.asarray(p.scene.object.vertices, dtype=np.float64).copy()
-        x0[p.template.object_nodes] = x0_graph
         # Interior vertices of a surface-only model are not state: lift them from the nodes.
-        p.reset(lift_to_mesh(p.template, x0[p.template.object_nodes]), pose0)
+        p.reset(lift_to_mesh(p.template, np.asarray(x0_graph, dtype=np.float64)), pose0)
         self.records = []
 
     def step(self, pose_next: np.ndarray) -> np.ndarray:

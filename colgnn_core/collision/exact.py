@@ -132,17 +132,23 @@ def is_step_collision_free(object_V0, object_V1, object_F, tool_V0, tool_V1, too
     return bool(ipctk.is_step_collision_free(mesh, V0, V1, broad_phase=ipctk.LBVH(), narrow_phase_ccd=ccd))
 
 
+def _check_points(points) -> np.ndarray:
+    """Query points as float64 [K,3]; InputError for a wrong shape or NaN/inf."""
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise InputError(f"points must be [K,3], got shape {P.shape}")
+    if not np.all(np.isfinite(P)):
+        raise InputError("points contain NaN or inf")
+    return P
+
+
 def winding_numbers(V, F, points, *, chunk: int = 2_000_000) -> np.ndarray:
     """Generalised winding number [K] of a closed, outward-oriented triangle mesh at ``points`` [K,3].
 
     ~1 inside, ~0 outside (Jacobson et al. 2013, solid angles by Van Oosterom & Strackee).
     """
     V, F = _check_mesh(V, F, "mesh")
-    P = np.asarray(points, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise InputError(f"points must be [K,3], got shape {P.shape}")
-    if not np.all(np.isfinite(P)):
-        raise InputError("points contain NaN or inf")
+    P = _check_points(points)
     out = np.zeros(len(P))
     if len(P) == 0:
         return out
@@ -176,11 +182,7 @@ def points_inside_mesh(V, F, points) -> np.ndarray:
     from colgnn_core.collision.broad_phase import box_pairs
 
     V, F = _check_mesh(V, F, "mesh")
-    P = np.asarray(points, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise InputError(f"points must be [K,3], got shape {P.shape}")
-    if not np.all(np.isfinite(P)):
-        raise InputError("points contain NaN or inf")
+    P = _check_points(points)
     inside = np.zeros(len(P), dtype=bool)
     lo, hi = V.min(axis=0), V.max(axis=0)
     cand = np.flatnonzero(np.all((P >= lo) & (P <= hi), axis=1))
