@@ -106,6 +106,13 @@ def cmd_rollout(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from colgnn_core.bench import bench, format_bench
 
+    if args.collision:
+        from colgnn_core.collision.benchmark import bench_collision, format_bench_collision
+
+        result = bench_collision(args.scene, args.resolution, repeats=args.repeats, sequence=args.sequence)
+        print(json.dumps(result, indent=2) if args.json else format_bench_collision(result))
+        return 0
+
     result = bench(args.scene, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
                    correction=not args.no_correction, progress=not args.json)
     print(json.dumps(result, indent=2) if args.json else format_bench(result))
@@ -232,6 +239,12 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--frames", type=_positive, default=40, help="trajectory length, rest frame included")
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
+    p.add_argument("--collision", action="store_true",
+                   help="instead: collision detection (broad + filter + narrow) vs ipctk's CCD on one contact step")
+    p.add_argument("--resolution", default="full", help="with --collision: scene resolution (full or ci)")
+    p.add_argument("--sequence", default=None,
+                   help="with --collision: take the deepest-contact step of this sequence file (default: synthetic)")
+    p.add_argument("--repeats", type=_positive, default=50, help="with --collision: timed repeats")
     p.add_argument("--json", action="store_true")
     handlers["bench"] = cmd_bench
 

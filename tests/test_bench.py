@@ -44,3 +44,16 @@ def test_bench_bad_input(capsys):
     assert main(["bench", "--scene", "cone_bunny", "--checkpoint", str(fx.trained_checkpoint("full")),
                  "--frames", "2"]) == 2
     assert "frames must be >= 3" in capsys.readouterr().err
+
+
+def test_collision_bench_cli_reports_both_timings_and_no_missed_hit(capsys):
+    """`colgnn bench --collision`: ours vs ipctk on the same step, in one run (timings only reported)."""
+    assert main(["bench", "--collision", "--scene", "cone_bunny", "--resolution", "ci", "--repeats", "3",
+                 "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["ipctk_hits_culled_by_filter"] == 0
+    assert sum(r["candidates"].values()) > 0 and r["crossings"] == r["ipctk_hits"]
+    assert 0 < r["broad_ms"] < r["ours_ms"] and r["ipctk_pairs_ms"] > 0
+    assert r["speedup_vs_ipctk_pairs"] == pytest.approx(r["ipctk_pairs_ms"] / r["ours_ms"])
+    assert main(["bench", "--collision", "--scene", "cone_bunny", "--resolution", "ci", "--repeats", "2"]) == 0
+    assert "speed-up vs ipctk same pairs" in capsys.readouterr().out

@@ -19,7 +19,8 @@ def brute_box_pairs(lo_a, hi_a, lo_b, hi_b):
     return set(map(tuple, np.argwhere(ov)))
 
 
-@pytest.mark.parametrize("na, nb, size", [(0, 5, 0.1), (7, 0, 0.1), (50, 80, 0.05), (300, 200, 0.2), (40, 40, 0.0)])
+@pytest.mark.parametrize("na, nb, size", [(0, 5, 0.1), (7, 0, 0.1), (50, 80, 0.05), (300, 200, 0.2), (40, 40, 0.0),
+                                                (150, 100, 0.0), (2000, 3, 0.01)])
 def test_box_pairs_matches_brute_force(na, nb, size):
     rng = np.random.default_rng(na + nb)
     lo_a = rng.uniform(0, 1, (na, 3))

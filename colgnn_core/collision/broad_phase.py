@@ -31,8 +31,10 @@ around the remaining vertices get the exact test.
 The remaining primitives are paired by overlapping swept boxes (box of the
 primitive's vertices at t0 and t1). Tool primitives that cannot reach the box of
 the remaining object primitives are dropped first. The box join sorts both sets
-along the axis where the boxes are smallest relative to their spread and expands
-index ranges from ``searchsorted``: vectorised, no Python loop over pairs.
+along the axis where the boxes are smallest relative to their spread and sweeps.
+The loops over vertices, primitives and pairs run as numba kernels (compiled once,
+cached on disk): at a few hundred candidates the cost of a numpy call, not the
+arithmetic, dominated the vectorised version.
 """
 
 from __future__ import annotations
@@ -40,15 +42,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
+from numba.extending import register_jitable
 
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
+
+_BRUTE_FORCE_PAIRS = 4096  # _box_join compares all pairs directly up to this many
 
 __all__ = ["Surface", "CandidatePairs", "ToolSDFBound", "mesh_edges", "box_pairs", "sdf_near_primitives",
            "step_candidates"]
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int64)
-_BRUTE_FORCE_PAIRS = 16384  # box_pairs compares all pairs directly below this many
 
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
@@ -163,51 +168,77 @@ def _ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndar
     return owner, np.repeat(starts, counts) + offsets
 
 
-def box_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray, soa: bool = False) -> np.ndarray:
-    """All (i, j) with box a_i and box b_j overlapping (closed boxes). Returns [K,2] int64.
+def box_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> np.ndarray:
+    """All (i, j) with box a_i and box b_j overlapping (closed boxes). Boxes [K,3]; returns [K,2] int64."""
+    lo_a, hi_a, lo_b, hi_b = (np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
+                              for x in (lo_a, hi_a, lo_b, hi_b))
+    return _box_join(lo_a, hi_a, lo_b, hi_b)
 
-    Boxes are [K,3] (or [3,K] with ``soa=True``). Two intervals overlap iff lo_b lies in
-    [lo_a, hi_a] or lo_a lies in (lo_b, hi_b]; both are contiguous ranges of the sorted
-    lower corners, found with searchsorted along the axis giving the fewest 1-D overlaps.
+
+@njit(cache=True)
+def _box_join(lo_a, hi_a, lo_b, hi_b):
+    """Sort-and-sweep join of two box sets [Ka,3], [Kb,3] -> pairs [K,2].
+
+    Along the axis where the boxes are smallest relative to the spread of their corners,
+    two intervals overlap iff lo_b lies in [lo_a, hi_a] or lo_a lies in (lo_b, hi_b]: both
+    are contiguous runs of the sorted lower corners (the two cases are disjoint).
     """
-    if not soa:
-        lo_a, hi_a, lo_b, hi_b = (np.ascontiguousarray(np.asarray(x, dtype=np.float64).T) for x in (lo_a, hi_a, lo_b, hi_b))
-    na, nb = lo_a.shape[1], lo_b.shape[1]
+    na, nb = lo_a.shape[0], lo_b.shape[0]
+    out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
     if na == 0 or nb == 0:
-        return _EMPTY_PAIRS.copy()
+        return out[:0]
+    n = 0
     if na * nb <= _BRUTE_FORCE_PAIRS:
-        # Small sets: one broadcast comparison beats sorting (numpy cost is per call).
-        ok = (lo_a[0][:, None] <= hi_b[0][None, :]) & (lo_b[0][None, :] <= hi_a[0][:, None])
-        for k in (1, 2):
-            ok &= (lo_a[k][:, None] <= hi_b[k][None, :]) & (lo_b[k][None, :] <= hi_a[k][:, None])
-        ia, ib = np.nonzero(ok)
-        return np.stack([ia, ib], axis=1).astype(np.int64, copy=False)
-    # Sweep along the axis where the boxes are smallest relative to the spread of their corners:
-    # it gives the fewest 1-D overlaps (a cheap proxy for trying all three axes).
-    size = (hi_a - lo_a).sum(axis=1) / na + (hi_b - lo_b).sum(axis=1) / nb
-    spread = np.maximum(hi_a.max(axis=1), hi_b.max(axis=1)) - np.minimum(lo_a.min(axis=1), lo_b.min(axis=1))
-    k = int(np.argmax(spread / np.maximum(size, 1e-300)))
-    ob = np.argsort(lo_b[k], kind="stable")
-    oa = np.argsort(lo_a[k], kind="stable")
-    sb, sa = lo_b[k][ob], lo_a[k][oa]
-    i0 = np.searchsorted(sb, lo_a[k], "left")
-    c1 = np.searchsorted(sb, hi_a[k], "right") - i0
-    j0 = np.searchsorted(sa, lo_b[k], "right")
-    c2 = np.searchsorted(sa, hi_b[k], "right") - j0
-    np.maximum(c1, 0, out=c1)
-    np.maximum(c2, 0, out=c2)
-    best = (int(c1.sum() + c2.sum()), oa, ob, i0, c1, j0, c2)
-    n, oa, ob, i0, c1, j0, c2 = best
-    if n == 0:
-        return _EMPTY_PAIRS.copy()
-    a1, r1 = _ranges(i0, c1)
-    b2, r2 = _ranges(j0, c2)
-    ia = np.concatenate([a1, oa[r2]])
-    ib = np.concatenate([ob[r1], b2])
-    ok = (lo_a[0, ia] <= hi_b[0, ib]) & (lo_b[0, ib] <= hi_a[0, ia])
-    for k in (1, 2):
-        ok &= (lo_a[k, ia] <= hi_b[k, ib]) & (lo_b[k, ib] <= hi_a[k, ia])
-    return np.stack([ia[ok], ib[ok]], axis=1)
+        # Small sets: comparing all pairs is cheaper than sorting.
+        for i in range(na):
+            for j in range(nb):
+                if _boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
+                    out, n = _push(out, n, i, j)
+        return out[:n].copy()
+    k, best = 0, -1.0
+    for ax in range(3):
+        size = (hi_a[:, ax] - lo_a[:, ax]).sum() / na + (hi_b[:, ax] - lo_b[:, ax]).sum() / nb
+        spread = max(hi_a[:, ax].max(), hi_b[:, ax].max()) - min(lo_a[:, ax].min(), lo_b[:, ax].min())
+        r = spread / max(size, 1e-300)
+        if r > best:
+            k, best = ax, r
+    oa = np.argsort(lo_a[:, k])
+    ob = np.argsort(lo_b[:, k])
+    sa = lo_a[oa, k]
+    sb = lo_b[ob, k]
+    for i in range(na):
+        j = np.searchsorted(sb, lo_a[i, k])
+        while j < nb and sb[j] <= hi_a[i, k]:
+            jb = ob[j]
+            if _boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, jb):
+                out, n = _push(out, n, i, jb)
+            j += 1
+    for jb in range(nb):
+        i = np.searchsorted(sa, lo_b[jb, k], side="right")
+        while i < na and sa[i] <= hi_b[jb, k]:
+            ia = oa[i]
+            if _boxes_overlap(lo_a, hi_a, ia, lo_b, hi_b, jb):
+                out, n = _push(out, n, ia, jb)
+            i += 1
+    return out[:n].copy()
+
+
+@register_jitable
+def _boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
+    # Branch-free (&, not "and"): the outcomes are unpredictable, mispredictions cost more.
+    return ((lo_a[i, 0] <= hi_b[j, 0]) & (lo_b[j, 0] <= hi_a[i, 0]) & (lo_a[i, 1] <= hi_b[j, 1])
+            & (lo_b[j, 1] <= hi_a[i, 1]) & (lo_a[i, 2] <= hi_b[j, 2]) & (lo_b[j, 2] <= hi_a[i, 2]))
+
+
+@register_jitable
+def _push(out, n, i, j):
+    if n == out.shape[0]:
+        grown = np.empty((2 * n, 2), dtype=np.int64)
+        grown[:n] = out
+        out = grown
+    out[n, 0] = i
+    out[n, 1] = j
+    return out, n + 1
 
 
 class ToolSDFBound:
@@ -245,106 +276,168 @@ class ToolSDFBound:
         out.margin = self.margin + extra
         return out
 
-    def lower_bounds(self, P0T: np.ndarray, P1T: np.ndarray, pose0, pose1, needed: float
+    def lower_bounds(self, X0: np.ndarray, X1: np.ndarray, ids: np.ndarray, pose0, pose1, needed: float
                      ) -> tuple[np.ndarray, np.ndarray]:
         """Lower bounds [K] (m) of the distance to the tool mesh (+ ``margin``) at t0 and t1 for
-        points [3,K]: the analytic SDF, or the bounding-sphere distance where that is enough.
+        the points ``X0[ids]``, ``X1[ids]`` (X [N,3]): the analytic SDF, or the bounding-sphere
+        distance where that is enough.
 
         The SDF is evaluated only for points whose sphere bounds sum to at most ``needed``;
         any lower bound of the distance keeps the culling conservative (module docstring).
         """
-        out = []
-        for PT, pose in ((P0T, pose0), (P1T, pose1)):
-            pose = np.asarray(pose, dtype=np.float64)
-            c = quat_to_matrix(pose[3:]) @ self.center_local + pose[:3]
-            d = PT - c[:, None]
-            out.append(_norm_soa(d[0], d[1], d[2]) - self.radius)
-        idx = np.flatnonzero((out[0] + out[1]) <= needed)
+        c0, c1 = (quat_to_matrix(np.asarray(p, dtype=np.float64)[3:]) @ self.center_local
+                  + np.asarray(p, dtype=np.float64)[:3] for p in (pose0, pose1))
+        lb0, lb1 = _sphere_bounds(X0, X1, ids, c0, c1, self.radius)
+        idx = np.flatnonzero((lb0 + lb1) <= needed)
         if len(idx):
-            for i, (PT, pose) in enumerate(((P0T, pose0), (P1T, pose1))):
-                sdf = np.asarray(self.tool.sdf(PT[:, idx].T, pose), dtype=np.float64)
-                out[i][idx] = np.maximum(out[i][idx], sdf)
-        return out[0], out[1]
+            for lb, X, pose in ((lb0, X0, pose0), (lb1, X1, pose1)):
+                sdf = np.asarray(self.tool.sdf(X[ids[idx]], pose), dtype=np.float64)
+                lb[idx] = np.maximum(lb[idx], sdf)
+        return lb0, lb1
 
 
-def _norm_soa(d0, d1, d2):
+@njit(cache=True)
+def _sphere_bounds(X0, X1, ids, c0, c1, radius):
+    """Distances [K] of points X0[ids], X1[ids] to the bounding spheres at t0 / t1 (centres c0, c1; m)."""
+    K = ids.shape[0]
+    lb0 = np.empty(K)
+    lb1 = np.empty(K)
+    for k in range(K):
+        lb0[k] = _dist(X0, ids[k], c0) - radius
+        lb1[k] = _dist(X1, ids[k], c1) - radius
+    return lb0, lb1
+
+
+@register_jitable
+def _dist(P, k, c):
+    d0, d1, d2 = P[k, 0] - c[0], P[k, 1] - c[1], P[k, 2] - c[2]
     return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
-def _max_edge_length(XT: np.ndarray, surface: Surface, cache: dict | None) -> float:
-    """Upper bound (m) on the longest surface edge at positions XT [3,N].
+@register_jitable
+def _row_dist(X, i, Y, j):
+    d0, d1, d2 = X[i, 0] - Y[j, 0], X[i, 1] - Y[j, 1], X[i, 2] - Y[j, 2]
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(cache=True)
+def _max_edge_length_kernel(X, edges):
+    m = 0.0
+    for e in range(edges.shape[0]):
+        m = max(m, _row_dist(X, edges[e, 0], X, edges[e, 1]))
+    return m
+
+
+@njit(cache=True)
+def _max_row_distance(X, Y, rows):
+    """max over ``rows`` of |X[r] - Y[r]| (m); all rows when ``rows`` is empty."""
+    m = 0.0
+    n = rows.shape[0] if rows.shape[0] else X.shape[0]
+    for i in range(n):
+        r = rows[i] if rows.shape[0] else i
+        m = max(m, _row_dist(X, r, Y, r))
+    return m
+
+
+_ALL_ROWS = np.zeros(0, dtype=np.int64)
+
+
+def _max_edge_length(X: np.ndarray, surface: Surface, cache: dict | None) -> float:
+    """Upper bound (m) on the longest surface edge at positions X [N,3].
 
     With a cache: exact lengths at a reference state, plus twice the largest vertex
     displacement from it (an edge grows at most by the motion of its two ends). The
     reference is refreshed when the bound gets loose.
     """
-    if cache is not None and "ref" in cache and cache["ref"].shape == XT.shape:
-        d = XT - cache["ref"]
-        move = float(np.sqrt((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).max()))
+    if cache is not None and "ref" in cache and cache["ref"].shape == X.shape:
+        move = _max_row_distance(X, cache["ref"], surface.vertices)
         if move <= 0.5 * cache["lmax"]:
             return cache["lmax"] + 2.0 * move
-    ea, eb = surface.edge_cols
-    lmax = float(_norm_soa(*(XT[k][ea] - XT[k][eb] for k in range(3))).max())
+    lmax = _max_edge_length_kernel(X, surface.edges)
     if cache is not None:
-        cache["ref"] = XT.copy()
+        cache["ref"] = X.copy()
         cache["lmax"] = lmax
     return lmax
 
 
-def sdf_near_primitives(X0T, X1T, surface: Surface, tool_bound: "ToolSDFBound", pose0, pose1,
+def sdf_near_primitives(X0, X1, surface: Surface, tool_bound: "ToolSDFBound", pose0, pose1,
                         tool_displacement: float, cache: dict | None = None
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ids of object surface vertices, edges and faces that may touch the tool (see module docstring).
 
-    X0T, X1T: [3,N] object positions at t0 and t1; pose0, pose1: tool poses [7];
+    X0, X1: [N,3] object positions at t0 and t1 (float64, C order); pose0, pose1: tool poses [7];
     tool_displacement: largest tool-vertex motion over the step (m). ``cache`` (a dict kept
     by the caller across steps) speeds up the longest-edge bound.
     """
-    n = surface.n_vertices
     S = surface.vertices
-    dX = X1T[:, S] - X0T[:, S]
-    disp_s = _norm_soa(dX[0], dX[1], dX[2])
     budget = tool_displacement + 2.0 * tool_bound.margin
-    lmax0 = _max_edge_length(X0T, surface, cache)
-    lmax1 = _max_edge_length(X1T, surface, cache)
-    dmax = float(disp_s.max())
+    lmax0 = _max_edge_length(X0, surface, cache)
+    lmax1 = _max_edge_length(X1, surface, cache)
+    dmax = _max_row_distance(X1, X0, S)
     # A vertex with s0 + s1 - Lmax0 - Lmax1 - Dmax > budget rules out itself and every edge and
     # face it is part of (their bounds below are at least that large).
     reach = budget + lmax0 + lmax1 + dmax
-    sdf0, sdf1 = tool_bound.lower_bounds(X0T[:, S], X1T[:, S], pose0, pose1, reach)
-    near_v = S[(sdf0 + sdf1 - disp_s) <= budget]
-    hopeful = S[(sdf0 + sdf1) <= reach]
-    if len(hopeful) == 0:
-        return near_v, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    sdf0, sdf1 = tool_bound.lower_bounds(X0, X1, S, pose0, pose1, reach)
+    ve, vf = surface.vertex_edges, surface.vertex_faces
+    return _near_primitives(X0, X1, S, sdf0, sdf1, budget, reach, surface.edges, surface.faces,
+                            ve[0], ve[1], vf[0], vf[1])
+
+
+@njit(cache=True)
+def _near_primitives(X0, X1, S, sdf0, sdf1, budget, reach, edges, faces, ve_off, ve_ids, vf_off, vf_ids):
+    """(near vertices, edges, faces): vertex bound s0 + s1 - d <= budget; edges and faces around
+    the "hopeful" vertices (s0 + s1 <= reach) get their own bound from their vertices:
+    every point is within L of each vertex, and within L/2 (segment) or L/sqrt(3)
+    (triangle) of the nearest one."""
+    n = X0.shape[0]
     s0 = np.full(n, np.inf)
     s1 = np.full(n, np.inf)
     disp = np.zeros(n)
-    s0[S], s1[S], disp[S] = sdf0, sdf1, disp_s
-    Ei = surface.incident(surface.vertex_edges, hopeful)
-    E = surface.edges[Ei]
-    Fi = surface.incident(surface.vertex_faces, hopeful)
-    F = surface.faces[Fi]
-    out = []
-    for prims, kind in ((E, "e"), (F, "f")):
-        cols = [np.ascontiguousarray(prims[:, i]) for i in range(prims.shape[1])]
-        P0 = [X0T[:, c] for c in cols]
-        P1 = [X1T[:, c] for c in cols]
-        k = len(cols)
-        pairs = [(i, (i + 1) % k) for i in range(k)] if k == 3 else [(0, 1)]
-        L0 = np.max([_norm_soa(*(P0[i] - P0[j])) for i, j in pairs], axis=0)
-        L1 = np.max([_norm_soa(*(P1[i] - P1[j])) for i, j in pairs], axis=0)
-        v0 = np.array([s0[c] for c in cols])
-        v1 = np.array([s1[c] for c in cols])
-        # Every point is within L of each vertex, and within L/2 (segment) or L/sqrt(3)
-        # (triangle) of the nearest one.
-        near_factor = 0.5 if k == 2 else 1.0 / np.sqrt(3.0)
-        lb0 = np.maximum(v0.max(axis=0) - L0, v0.min(axis=0) - near_factor * L0)
-        lb1 = np.maximum(v1.max(axis=0) - L1, v1.min(axis=0) - near_factor * L1)
-        d = np.max([disp[c] for c in cols], axis=0)
-        out.append(lb0 + lb1 - d <= budget)
-    near_e = Ei[out[0]]
-    near_f = Fi[out[1]]
-    return near_v, near_e, near_f
+    near_v = np.empty(len(S), dtype=np.int64)
+    nv = 0
+    for i in range(len(S)):
+        v = S[i]
+        s0[v], s1[v] = sdf0[i], sdf1[i]
+        disp[v] = _row_dist(X1, v, X0, v)
+        if sdf0[i] + sdf1[i] - disp[v] <= budget:
+            near_v[nv] = v
+            nv += 1
+    seen_e = np.zeros(len(edges), dtype=np.bool_)
+    seen_f = np.zeros(len(faces), dtype=np.bool_)
+    near_e = np.empty(len(edges), dtype=np.int64)
+    near_f = np.empty(len(faces), dtype=np.int64)
+    ne = nf = 0
+    for i in range(len(S)):
+        v = S[i]
+        if not sdf0[i] + sdf1[i] <= reach:
+            continue
+        for q in range(ve_off[v], ve_off[v + 1]):
+            e = ve_ids[q]
+            if seen_e[e]:
+                continue
+            seen_e[e] = True
+            a, b = edges[e, 0], edges[e, 1]
+            L0, L1 = _row_dist(X0, a, X0, b), _row_dist(X1, a, X1, b)
+            lb0 = max(max(s0[a], s0[b]) - L0, min(s0[a], s0[b]) - 0.5 * L0)
+            lb1 = max(max(s1[a], s1[b]) - L1, min(s1[a], s1[b]) - 0.5 * L1)
+            if lb0 + lb1 - max(disp[a], disp[b]) <= budget:
+                near_e[ne] = e
+                ne += 1
+        for q in range(vf_off[v], vf_off[v + 1]):
+            f = vf_ids[q]
+            if seen_f[f]:
+                continue
+            seen_f[f] = True
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            L0 = max(_row_dist(X0, a, X0, b), _row_dist(X0, b, X0, c), _row_dist(X0, c, X0, a))
+            L1 = max(_row_dist(X1, a, X1, b), _row_dist(X1, b, X1, c), _row_dist(X1, c, X1, a))
+            r = 1.0 / np.sqrt(3.0)
+            lb0 = max(max(s0[a], s0[b], s0[c]) - L0, min(s0[a], s0[b], s0[c]) - r * L0)
+            lb1 = max(max(s1[a], s1[b], s1[c]) - L1, min(s1[a], s1[b], s1[c]) - r * L1)
+            if lb0 + lb1 - max(disp[a], disp[b], disp[c]) <= budget:
+                near_f[nf] = f
+                nf += 1
+    return near_v[:nv].copy(), np.sort(near_e[:ne]), np.sort(near_f[:nf])
 
 
 def _check_positions(X, n: int, name: str) -> np.ndarray:
@@ -357,29 +450,23 @@ def _check_positions(X, n: int, name: str) -> np.ndarray:
 
 
 def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool_t1, tool_surface: Surface, *,
-                tool_bound: ToolSDFBound | None = None, tool_pose_t0=None, tool_pose_t1=None,
-                check: bool = True, cache: dict | None = None, transposed: tuple | None = None) -> CandidatePairs:
+                    tool_bound: ToolSDFBound | None = None, tool_pose_t0=None, tool_pose_t1=None,
+                    check: bool = True, cache: dict | None = None) -> CandidatePairs:
     """Candidate pairs for the linear motion t0 -> t1 of object [N,3] and tool [M,3] positions (m).
 
     With ``tool_bound`` and both tool poses, object primitives are first culled with the
     tool's analytic SDF. ``check=False`` skips input validation (hot path, trusted arrays:
     then the tool positions must be ``tool.world_vertices(pose)`` at both ends);
-    ``cache`` is a dict the caller keeps across steps of the same object (edge-length bound);
-    ``transposed`` optionally gives the four position arrays already as contiguous [3,N] arrays.
+    ``cache`` is a dict the caller keeps across steps of the same object (edge-length bounds).
     """
     if check:
         object_t0 = _check_positions(object_t0, object_surface.n_vertices, "object_t0")
         object_t1 = _check_positions(object_t1, object_surface.n_vertices, "object_t1")
         tool_t0 = _check_positions(tool_t0, tool_surface.n_vertices, "tool_t0")
         tool_t1 = _check_positions(tool_t1, tool_surface.n_vertices, "tool_t1")
-    if transposed is not None:
-        X0T, X1T, T0T, T1T = transposed
-    else:
-        X0T, X1T, T0T, T1T = (np.ascontiguousarray(np.asarray(x, dtype=np.float64).T)
-                              for x in (object_t0, object_t1, tool_t0, tool_t1))
+    X0, X1, T0, T1 = (np.ascontiguousarray(x, dtype=np.float64) for x in (object_t0, object_t1, tool_t0, tool_t1))
     if tool_bound is not None and tool_bound.usable and tool_pose_t0 is not None and tool_pose_t1 is not None:
-        dT = T1T - T0T
-        D = float(_norm_soa(dT[0], dT[1], dT[2]).max())
+        D = _max_row_distance(T1, T0, _ALL_ROWS)
         bound = tool_bound
         if check:
             # The SDF describes the tool at the given poses; the positions must be that mesh.
@@ -389,50 +476,101 @@ def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool
             if dev > 1e-3 * max(tool_bound.radius, 1e-9):
                 raise InputError(f"tool positions differ from the tool mesh at the given poses by {dev:.3g} m")
             bound = tool_bound.widened(2.0 * dev)
-        near_v, near_e, near_f = sdf_near_primitives(X0T, X1T, object_surface, bound, tool_pose_t0,
-                                                     tool_pose_t1, D, cache)
+        near_v, near_e, near_f = sdf_near_primitives(X0, X1, object_surface, bound, tool_pose_t0, tool_pose_t1,
+                                                     D, cache)
     else:
         near_v = object_surface.vertices
         near_e = np.arange(len(object_surface.edges))
         near_f = np.arange(len(object_surface.faces))
-    out = CandidatePairs()
     if len(near_v) + len(near_e) + len(near_f) == 0:
-        return out
-    # Per-vertex swept boxes; a primitive's box is the union of its vertices' boxes.
-    olo, ohi = np.minimum(X0T, X1T), np.maximum(X0T, X1T)
-    tlo, thi = np.minimum(T0T, T1T), np.maximum(T0T, T1T)
-    # Region R: box of every near object primitive. A tool face/edge whose box meets R has
-    # *every* vertex box within Lt (its longest edge over the step) of R, so tool primitives
-    # with a vertex outside R + Lt are dropped before the pairwise join.
-    ids = np.unique(np.concatenate([near_v, object_surface.edges[near_e].ravel(), object_surface.faces[near_f].ravel()]))
-    r_lo, r_hi = olo[:, ids].min(axis=1), ohi[:, ids].max(axis=1)
-    lt = max(_max_edge_length(T0T, tool_surface, None if cache is None else cache.setdefault("tool", {})),
-             _max_edge_length(T1T, tool_surface, None if cache is None else cache.setdefault("tool", {})))
-    rel = np.all((tlo <= (r_hi + lt)[:, None]) & (thi >= (r_lo - lt)[:, None]), axis=0)
-    if not rel.any():
-        return out
-    if len(near_v):
-        G = tool_surface.faces
-        gsel = np.flatnonzero(rel[G[:, 0]] & rel[G[:, 1]] & rel[G[:, 2]])
-        p = box_pairs(olo[:, near_v], ohi[:, near_v], *_prim_boxes(tlo, thi, G[gsel]), soa=True)
-        out.vf = np.stack([near_v[p[:, 0]], gsel[p[:, 1]]], axis=1)
-    if len(near_f):
-        vsel = np.flatnonzero(rel)
-        p = box_pairs(tlo[:, vsel], thi[:, vsel], *_prim_boxes(olo, ohi, object_surface.faces[near_f]), soa=True)
-        out.fv = np.stack([vsel[p[:, 0]], near_f[p[:, 1]]], axis=1)
-    if len(near_e):
-        H = tool_surface.edges
-        hsel = np.flatnonzero(rel[H[:, 0]] & rel[H[:, 1]])
-        p = box_pairs(*_prim_boxes(olo, ohi, object_surface.edges[near_e]), *_prim_boxes(tlo, thi, H[hsel]), soa=True)
-        out.ee = np.stack([near_e[p[:, 0]], hsel[p[:, 1]]], axis=1)
+        return CandidatePairs()
+    vf, fv, ee = _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, object_surface.faces,
+                                  object_surface.edges, tool_surface.faces, tool_surface.edges)
+    return CandidatePairs(vf=vf, fv=fv, ee=ee)
+
+
+@njit(cache=True)
+def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_faces, tool_edges):
+    """(vf, fv, ee) pairs [K,2] whose swept boxes (box of the primitive's vertices at t0 and t1) overlap.
+
+    Region R: box of every near object primitive. Tool primitives whose box misses R, and
+    tool vertices outside it, are dropped before the join.
+    """
+    r_lo = np.full(3, np.inf)
+    r_hi = np.full(3, -np.inf)
+    vlo, vhi = _vertex_boxes(X0, X1, near_v)
+    elo, ehi = _prim_boxes(X0, X1, edges, near_e)
+    flo, fhi = _prim_boxes(X0, X1, faces, near_f)
+    for lo, hi in ((vlo, vhi), (elo, ehi), (flo, fhi)):
+        for k in range(lo.shape[0]):
+            for a in range(3):
+                r_lo[a] = min(r_lo[a], lo[k, a])
+                r_hi[a] = max(r_hi[a], hi[k, a])
+    # Per tool vertex, bit 2a: its swept box is below R on axis a, bit 2a+1: above. A tool
+    # primitive's box misses R iff all its vertices share one of those bits.
+    m = T0.shape[0]
+    side = np.zeros(m, dtype=np.int64)
+    for i in range(m):
+        for a in range(3):
+            if max(T0[i, a], T1[i, a]) < r_lo[a]:
+                side[i] |= 1 << (2 * a)
+            if min(T0[i, a], T1[i, a]) > r_hi[a]:
+                side[i] |= 1 << (2 * a + 1)
+    rel = side == 0
+    vsel = np.flatnonzero(rel)
+    gsel = _meeting_region(tool_faces, side)
+    hsel = _meeting_region(tool_edges, side)
+    tvlo, tvhi = _vertex_boxes(T0, T1, vsel)
+    tflo, tfhi = _prim_boxes(T0, T1, tool_faces, gsel)
+    telo, tehi = _prim_boxes(T0, T1, tool_edges, hsel)
+    vf = _box_join(vlo, vhi, tflo, tfhi)
+    fv = _box_join(tvlo, tvhi, flo, fhi)
+    ee = _box_join(elo, ehi, telo, tehi)
+    return _map_pairs(vf, near_v, gsel), _map_pairs(fv, vsel, near_f), _map_pairs(ee, near_e, hsel)
+
+
+@register_jitable
+def _meeting_region(prims, side):
+    """Ids of primitives whose box meets the region (their vertices share no 'outside' bit)."""
+    keep = np.zeros(prims.shape[0], dtype=np.bool_)
+    for p in range(prims.shape[0]):
+        common = side[prims[p, 0]]
+        for i in range(1, prims.shape[1]):
+            common &= side[prims[p, i]]
+        keep[p] = common == 0
+    return np.flatnonzero(keep)
+
+
+@register_jitable
+def _map_pairs(pairs, ids_a, ids_b):
+    out = np.empty_like(pairs)
+    for k in range(pairs.shape[0]):
+        out[k, 0] = ids_a[pairs[k, 0]]
+        out[k, 1] = ids_b[pairs[k, 1]]
     return out
 
 
-def _prim_boxes(vlo: np.ndarray, vhi: np.ndarray, prims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boxes [3,K] of primitives [K,k] from per-vertex boxes [3,N] (gathers + elementwise min/max)."""
-    lo = vlo[:, prims[:, 0]]
-    hi = vhi[:, prims[:, 0]]
-    for i in range(1, prims.shape[1]):
-        np.minimum(lo, vlo[:, prims[:, i]], out=lo)
-        np.maximum(hi, vhi[:, prims[:, i]], out=hi)
+@register_jitable
+def _vertex_boxes(X0, X1, ids):
+    lo = np.empty((len(ids), 3))
+    hi = np.empty((len(ids), 3))
+    for k in range(len(ids)):
+        v = ids[k]
+        for a in range(3):
+            lo[k, a] = min(X0[v, a], X1[v, a])
+            hi[k, a] = max(X0[v, a], X1[v, a])
+    return lo, hi
+
+
+@register_jitable
+def _prim_boxes(X0, X1, prims, ids):
+    """Swept boxes [K,3] of primitives ``prims[ids]`` (edges or faces)."""
+    lo = np.full((len(ids), 3), np.inf)
+    hi = np.full((len(ids), 3), -np.inf)
+    for k in range(len(ids)):
+        for i in range(prims.shape[1]):
+            v = prims[ids[k], i]
+            for a in range(3):
+                lo[k, a] = min(lo[k, a], X0[v, a], X1[v, a])
+                hi[k, a] = max(hi[k, a], X0[v, a], X1[v, a])
     return lo, hi

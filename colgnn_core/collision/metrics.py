@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from colgnn_core.collision import exact as _exact
-from colgnn_core.collision.broad_phase import Surface, box_pairs
-from colgnn_core.collision.narrow_phase import _depth_soa, bernstein_from_soa
-from colgnn_core.collision.pipeline import CollisionDetector, coplanarity_points, pair_points
+from colgnn_core.collision.broad_phase import CandidatePairs, Surface, box_pairs
+from colgnn_core.collision.narrow_phase import depth_quads
+from colgnn_core.collision.pipeline import CollisionDetector, pair_points, pair_quads, stacked_positions
 from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence, load_sequence
 
@@ -82,22 +82,19 @@ def step_crossings(object_t0, object_t1, object_faces, tool_t0, tool_t1, tool_fa
     if not exact:
         return res.summary()
     X = (object_t0, object_t1, tool_t0, tool_t1)
-    XT = tuple(np.ascontiguousarray(x.T) for x in X)
     surf = (det.object_surface, det.tool_surface)
+    X0, X1 = stacked_positions(object_t0, tool_t0), stacked_positions(object_t1, tool_t1)
     depths = {}
     for kind in ("vf", "fv", "ee"):
         pairs = getattr(res.survivors, kind)
-        if len(pairs) == 0:
-            depths[kind] = np.zeros(0)
-            continue
-        ccd = _exact.ccd_edge_edge if kind == "ee" else _exact.ccd_vertex_face
-        hit, _ = ccd(*pair_points(kind, pairs, *X, *surf))
-        if not hit.any():
-            depths[kind] = np.zeros(0)
-            continue
-        pts = coplanarity_points(kind, pairs[hit], XT, *surf)
-        bern, _ = bernstein_from_soa(pts)
-        depths[kind] = _depth_soa(pts, np.full(int(hit.sum()), kind == "ee"), bern)
+        hit = np.zeros(0, bool)
+        if len(pairs):
+            ccd = _exact.ccd_edge_edge if kind == "ee" else _exact.ccd_vertex_face
+            hit, _ = ccd(*pair_points(kind, pairs, *X, *surf))
+        crossing = CandidatePairs()
+        setattr(crossing, kind, pairs[hit] if len(pairs) else pairs)
+        quads, is_ee = pair_quads(crossing, *surf)
+        depths[kind] = depth_quads(X0, X1, quads, is_ee)
     dvf = np.concatenate([depths["vf"], depths["fv"]])
     dee = depths["ee"]
     return {

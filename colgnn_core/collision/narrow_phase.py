@@ -24,12 +24,17 @@ This narrow phase is fast and accurate but not exact: grazing contacts (f touchi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from colgnn_core.collision.filter import ERROR_FACTOR, UNDERFLOW_GUARD, coefficients_soa
+from numba import njit
+from numba.extending import register_jitable
+
+from colgnn_core.collision.filter import (_U, ERROR_FACTOR, UNDERFLOW_GUARD, _coefficients, _cross, _dot, _keep,
+                                          _quad_points, _sub, stack_quads)
 from colgnn_core.errors import InputError
 
 __all__ = [
@@ -37,8 +42,8 @@ __all__ = [
     "vertex_face_narrow",
     "edge_edge_narrow",
     "cubic_roots_01",
-    "narrow_soa",
-    "bernstein_from_soa",
+    "filter_narrow_quads",
+    "depth_quads",
     "vertex_face_depth_torch",
     "edge_edge_depth_torch",
     "sdf_depth_torch",
@@ -47,7 +52,6 @@ __all__ = [
 BISECTION_STEPS = 14  # bracket to 6e-5 of the step ...
 NEWTON_STEPS = 3  # ... then safeguarded Newton: toi to ~1e-12
 INSIDE_TOL = 1e-9  # barycentric / segment-parameter slack at the root
-_U = np.finfo(np.float64).eps / 2
 
 
 @dataclass
@@ -66,9 +70,99 @@ class NarrowResult:
         return cls(np.zeros(0, bool), np.zeros(0), np.zeros(0), np.zeros(0, bool))
 
 
-def _bernstein_to_power(b0, b1, b2, b3):
-    # f(t) = c0 + c1 t + c2 t^2 + c3 t^3 from true Bernstein coefficients.
-    return b0, 3 * (b1 - b0), 3 * (b0 - 2 * b1 + b2), b3 - 3 * b2 + 3 * b1 - b0
+@register_jitable
+def _sign(x):
+    # np.sign for one float (NaN stays NaN).
+    if x > 0:
+        return 1.0
+    if x < 0:
+        return -1.0
+    return x * 0.0
+
+
+@register_jitable
+def _cubic(c0, c1, c2, c3, t):
+    return ((c3 * t + c2) * t + c1) * t + c0
+
+
+@register_jitable
+def _piece_root(c0, c1, c2, c3, lo, hi, flo, fhi):
+    """Root in a monotone piece [lo, hi] whose end values ``flo``, ``fhi`` bracket 0: bisection, then
+    safeguarded Newton (never leaves the bracket)."""
+    if flo == 0:
+        return lo
+    s_a = _sign(flo)
+    a, z = lo, hi
+    for _ in range(BISECTION_STEPS):
+        m = 0.5 * (a + z)
+        if _sign(_cubic(c0, c1, c2, c3, m)) == s_a:  # root lies in (m, z]
+            a = m
+        else:
+            z = m
+    t = 0.5 * (a + z)
+    for _ in range(NEWTON_STEPS):
+        dft = (3 * c3 * t + 2 * c2) * t + c1
+        if dft != 0:
+            tn = t - _cubic(c0, c1, c2, c3, t) / dft
+            if a <= tn <= z:
+                t = tn
+    return t
+
+
+@register_jitable
+def _critical_points(c1, c2, c3):
+    """Critical points of the cubic inside (0, 1), as (m1 <= m2); 1.0 stands for "none"."""
+    qa, qb, qc = 3 * c3, 2 * c2, c1
+    r1 = r2 = np.nan
+    if abs(qa) <= 1e-14 * (abs(qb) + abs(qc)):
+        if qb != 0:
+            r1 = -qc / qb
+    else:
+        disc = qb * qb - 4 * qa * qc
+        if disc >= 0:
+            # Stable quadratic formula.
+            q = -0.5 * (qb + math.copysign(math.sqrt(disc), qb))
+            r1 = q / qa
+            if q != 0:
+                r2 = qc / q
+    r1 = r1 if 0 < r1 < 1 else 1.0
+    r2 = r2 if 0 < r2 < 1 else 1.0
+    return min(r1, r2), max(r1, r2)
+
+
+@register_jitable
+def _cubic_roots(b0, b1, b2, b3):
+    """Roots in [0,1] of one cubic with Bernstein coefficients b0..b3: sorted (r0, r1, r2), NaN last."""
+    c0, c1, c2, c3 = b0, 3 * (b1 - b0), 3 * (b0 - 2 * b1 + b2), b3 - 3 * b2 + 3 * b1 - b0
+    m1, m2 = _critical_points(c1, c2, c3)
+    r0 = _piece(c0, c1, c2, c3, b0, b3, 0.0, m1)
+    r1 = _piece(c0, c1, c2, c3, b0, b3, m1, m2)
+    r2 = _piece(c0, c1, c2, c3, b0, b3, m2, 1.0)
+    # Pieces are ordered, so the roots are: only move the NaNs last.
+    if np.isnan(r1):
+        r1, r2 = r2, r1
+    if np.isnan(r0):
+        r0, r1, r2 = r1, r2, r0
+    return r0, r1, r2
+
+
+@register_jitable
+def _piece(c0, c1, c2, c3, b0, b3, lo, hi):
+    """Root of the monotone piece [lo, hi], or NaN when its end values do not bracket 0."""
+    # End points use the exact Bernstein values f(0) = b0, f(1) = b3.
+    flo = b0 if lo == 0.0 else (b3 if lo == 1.0 else _cubic(c0, c1, c2, c3, lo))
+    fhi = b3 if hi == 1.0 else _cubic(c0, c1, c2, c3, hi)
+    if (_sign(flo) * _sign(fhi) <= 0 and hi > lo) or (lo == 0.0 and b0 == 0):
+        return _piece_root(c0, c1, c2, c3, lo, hi, flo, fhi)
+    return np.nan
+
+
+@njit(cache=True)
+def _cubic_roots_kernel(b: np.ndarray) -> np.ndarray:
+    out = np.empty((b.shape[0], 3))
+    for k in range(b.shape[0]):
+        out[k, 0], out[k, 1], out[k, 2] = _cubic_roots(b[k, 0], b[k, 1], b[k, 2], b[k, 3])
+    return out
 
 
 def cubic_roots_01(b: np.ndarray) -> np.ndarray:
@@ -79,186 +173,154 @@ def cubic_roots_01(b: np.ndarray) -> np.ndarray:
     bisected (``BISECTION_STEPS``) and polished by safeguarded Newton steps, so a sign
     change is never missed; a double root without a sign change may be.
     """
-    K = len(b)
-    b0, b1, b2, b3 = (np.ascontiguousarray(b[:, i]) for i in range(4))
-    c0, c1, c2, c3 = _bernstein_to_power(b0, b1, b2, b3)
-    # Critical points: 3 c3 t^2 + 2 c2 t + c1 = 0, stable quadratic formula.
-    qa, qb, qc = 3 * c3, 2 * c2, c1
-    disc = qb * qb - 4 * qa * qc
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
-        q = -0.5 * (qb + np.copysign(sq, qb))
-        r1 = q / qa
-        r2 = qc / q
-        lin = np.abs(qa) <= 1e-14 * (np.abs(qb) + np.abs(qc))
-        r1 = np.where(lin, -qc / qb, r1)
-        r2 = np.where(lin, np.nan, r2)
-    r1 = np.where((r1 > 0) & (r1 < 1), r1, 1.0)  # no critical point -> empty trailing piece
-    r2 = np.where((r2 > 0) & (r2 < 1), r2, 1.0)
-    m1, m2 = np.minimum(r1, r2), np.maximum(r1, r2)
-    lo = np.stack([np.zeros(K), m1, m2], axis=1)
-    hi = np.stack([m1, m2, np.ones(K)], axis=1)
-
-    def f(t, k):
-        return ((c3[k] * t + c2[k]) * t + c1[k]) * t + c0[k]
-
-    kk = np.broadcast_to(np.arange(K)[:, None], (K, 3))
-    flo, fhi = f(lo, kk), f(hi, kk)
-    # End points use the exact Bernstein values f(0) = b0, f(1) = b3.
-    flo[:, 0] = b0
-    fhi = np.where(hi == 1.0, b3[:, None], fhi)
-    flo = np.where(lo == 1.0, b3[:, None], flo)
-    bracket = (np.sign(flo) * np.sign(fhi) <= 0) & (hi > lo)
-    bracket[:, 0] |= b0 == 0  # a root exactly at t = 0
-    roots = np.full((K, 3), np.nan)
-    pk, pj = np.nonzero(bracket)
-    if len(pk):
-        a, z = lo[pk, pj], hi[pk, pj]
-        s_a = np.sign(flo[pk, pj])
-        s_a = np.where(s_a == 0, -np.sign(fhi[pk, pj]), s_a)
-        exact0 = flo[pk, pj] == 0
-        C0, C1, C2, C3 = c0[pk], c1[pk], c2[pk], c3[pk]
-        for _ in range(BISECTION_STEPS):
-            m = 0.5 * (a + z)
-            right = np.sign(((C3 * m + C2) * m + C1) * m + C0) == s_a  # root lies in (m, z]
-            a = np.where(right, m, a)
-            z = np.where(right, z, m)
-        t = 0.5 * (a + z)
-        for _ in range(NEWTON_STEPS):
-            ft = ((C3 * t + C2) * t + C1) * t + C0
-            dft = (3 * C3 * t + 2 * C2) * t + C1
-            with np.errstate(invalid="ignore", divide="ignore"):
-                tn = t - ft / dft
-            t = np.where((tn >= a) & (tn <= z), tn, t)
-        roots[pk, pj] = np.where(exact0, lo[pk, pj], t)
-    return np.sort(roots, axis=1)  # NaN sorts last
+    b = np.asarray(b, dtype=np.float64)
+    if b.ndim != 2 or b.shape[1] != 4:
+        raise InputError(f"Bernstein coefficients must be [K,4], got shape {b.shape}")
+    return _cubic_roots_kernel(np.ascontiguousarray(b))
 
 
-def _dot(x, y):
-    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+@register_jitable
+def _lerp3(x0, x1, t):
+    return x0[0] + (x1[0] - x0[0]) * t, x0[1] + (x1[1] - x0[1]) * t, x0[2] + (x1[2] - x0[2]) * t
 
 
-def _cross3(x, y):
-    return np.stack([x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]])
+@register_jitable
+def _inside_at(P, A, B, C, is_ee):
+    """(inside, degenerate) at a coplanar instant. Vertex-face: barycentric coordinates of P in
+    (A, B, C). Edge-edge (u, v | k, l) = (B, C | A, P): line parameters of the closest points."""
+    if is_ee:
+        x, y, w = _sub(C, B), _sub(P, A), _sub(B, A)
+    else:
+        x, y, w = _sub(B, A), _sub(C, A), _sub(P, A)
+    xx, xy, yy, wx, wy = _dot(x, x), _dot(x, y), _dot(y, y), _dot(w, x), _dot(w, y)
+    den = xx * yy - xy * xy
+    if not den > 1e-24 * (xx * yy) + 1e-300:
+        return False, True
+    u1 = (yy * wx - xy * wy) / den
+    u2 = (xx * wy - xy * wx) / den
+    tol = INSIDE_TOL
+    if is_ee:
+        # w = u - k, so the closest-point parameters are s = -u1 on (u, v) and u2 on (k, l).
+        s = -u1
+        return (s >= -tol) and (s <= 1 + tol) and (u2 >= -tol) and (u2 <= 1 + tol), False
+    return (u1 >= -tol) and (u2 >= -tol) and (u1 + u2 <= 1 + tol), False
 
 
-def _lerp(x0, x1, t):
-    return x0 + (x1 - x0) * t
+@register_jitable
+def _depth_at_t1(p1, a1, b1, c1, is_ee, b0, b3):
+    """Wrong-side depth at t1 (m): plane distance (vf) or line distance (ee), 0 if on the start side.
+
+    vf: n = (b-a) x (c-a), f = (p-a).n. ee (u,v|k,l) = (b,c|a,p): n = (v-u) x (l-k), f = -(k-u).n,
+    which has the sign of the coplanarity cubic at t1. Side at t0 = sign f(0); if f(0) == 0 the
+    pair "starts" opposite to where it ends.
+    """
+    if is_ee:
+        x, y = _sub(c1, b1), _sub(p1, a1)
+    else:
+        x, y = _sub(b1, a1), _sub(c1, a1)
+    n = _cross(x[0], x[1], x[2], y[0], y[1], y[2])
+    f1 = -_dot(_sub(a1, b1), n) if is_ee else _dot(_sub(p1, a1), n)
+    nn = np.sqrt(_dot(n, n))
+    side = _sign(b0)
+    if side == 0:
+        side = -_sign(b3)
+    if not nn > 0:
+        return 0.0
+    return max(-side * f1 / nn, 0.0)
 
 
-def _soa_inputs(args, names) -> list[np.ndarray]:
+@register_jitable
+def _narrow_one(pts, is_ee, coef, mag):
+    """(hit, toi, depth, degenerate) of one filtered pair from its 8 points and filter coefficients."""
+    flat = True
+    for i in range(4):
+        flat = flat and abs(coef[i]) <= mag[i] * (ERROR_FACTOR * _U) + UNDERFLOW_GUARD
+    if flat:
+        return False, np.inf, 0.0, True
+    b0, b3 = coef[0], coef[3]
+    roots = _cubic_roots(b0, coef[1] / 3.0, coef[2] / 3.0, b3)
+    degenerate = False
+    for j in range(3):
+        t = roots[j]
+        if np.isnan(t):
+            break
+        P, A = _lerp3(pts[0], pts[4], t), _lerp3(pts[1], pts[5], t)
+        B, C = _lerp3(pts[2], pts[6], t), _lerp3(pts[3], pts[7], t)
+        inside, bad = _inside_at(P, A, B, C, is_ee)
+        degenerate = degenerate or bad
+        if inside:
+            return True, t, _depth_at_t1(pts[4], pts[5], pts[6], pts[7], is_ee, b0, b3), degenerate
+    return False, np.inf, 0.0, degenerate
+
+
+@njit(cache=True)
+def filter_narrow_quads(X0, X1, quads, is_ee, narrow):
+    """Filter, then (if ``narrow``) narrow phase, for pairs given as vertex quads.
+
+    X0, X1 [V,3] float64 positions (m) at t0 and t1; quads [K,4] int64 (p, a, b, c), see
+    :func:`colgnn_core.collision.filter.keep_quads`; is_ee [K] bool marks edge-edge rows.
+    Returns keep [K] bool and hit, toi, depth, degenerate [K] (hit False, toi inf, depth 0,
+    degenerate False where not kept or not ``narrow``).
+    """
+    K = quads.shape[0]
+    keep = np.zeros(K, dtype=np.bool_)
+    hit = np.zeros(K, dtype=np.bool_)
+    degenerate = np.zeros(K, dtype=np.bool_)
+    toi = np.full(K, np.inf)
+    depth = np.zeros(K)
+    for k in range(K):
+        pts = _quad_points(X0, X1, quads, k)
+        coef, mag = _coefficients(*pts)
+        keep[k] = _keep(coef, mag, _U)
+        if keep[k] and narrow:
+            hit[k], toi[k], depth[k], degenerate[k] = _narrow_one(pts, is_ee[k], coef, mag)
+    return keep, hit, toi, depth, degenerate
+
+
+@njit(cache=True)
+def depth_quads(X0, X1, quads, is_ee):
+    """Wrong-side depth at t1 [K] (m) of pairs known to cross (e.g. by exact CCD), as vertex quads
+    (see :func:`filter_narrow_quads`): plane distance (vf) or line distance (ee)."""
+    K = quads.shape[0]
+    depth = np.zeros(K)
+    for k in range(K):
+        pts = _quad_points(X0, X1, quads, k)
+        coef, _ = _coefficients(*pts)
+        depth[k] = _depth_at_t1(pts[4], pts[5], pts[6], pts[7], is_ee[k], coef[0], coef[3])
+    return depth
+
+
+def _narrow_inputs(args, names) -> list[np.ndarray]:
     out = []
     for a, n in zip(args, names):
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 2 or a.shape[1] != 3:
             raise InputError(f"{n} must be [K,3], got shape {a.shape}")
-        out.append(np.ascontiguousarray(a.T))
-    if len({a.shape[1] for a in out}) != 1:
+        out.append(a)
+    if len({len(a) for a in out}) != 1:
         raise InputError("all narrow-phase inputs must have the same number of rows")
     return out
 
 
-def bernstein_from_soa(pts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(bern [K,4] true Bernstein coefficients, flat [K] bool: all within rounding of 0) from
-    the 8 coplanarity arrays (p, a, b, c at t0 then t1), each [3,K]."""
-    coef, mag = coefficients_soa(*pts)
-    return bernstein_from_coefficients(coef, mag)
-
-
-def bernstein_from_coefficients(coef, mag) -> tuple[np.ndarray, np.ndarray]:
-    """Convert filter coefficients (middle ones x3) and magnitudes to (bern [K,4], flat [K])."""
-    b = np.stack([coef[0], coef[1] / 3.0, coef[2] / 3.0, coef[3]], axis=1)
-    flat = np.ones(len(b), dtype=bool)
-    for c, m in zip(coef, mag):
-        flat &= np.abs(c) <= m * (ERROR_FACTOR * _U) + UNDERFLOW_GUARD
-    return b, flat
-
-
-def narrow_soa(pts: list[np.ndarray], is_ee: np.ndarray, bern: np.ndarray, flat: np.ndarray) -> NarrowResult:
-    """Narrow phase on pairs in coplanarity form: ``pts`` = (p, a, b, c at t0, then at t1), each
-    [3,K]; vertex-face rows are (vertex; triangle), edge-edge rows (u,v | k,l) are (l; k, u, v).
-    ``is_ee`` [K] bool marks edge-edge rows; ``bern``/``flat`` from :func:`bernstein_from_soa`."""
-    K = pts[0].shape[1]
-    if K == 0:
-        return NarrowResult.empty()
-    p0, a0, b0, c0, p1, a1, b1, c1 = pts
-    roots = cubic_roots_01(bern)
-    hit = np.zeros(K, dtype=bool)
-    toi = np.full(K, np.inf)
-    degenerate = flat.copy()
-    for j in range(3):  # at most 3 roots per pair: loop over root slots, vectorised over pairs
-        t = roots[:, j]
-        idx = np.flatnonzero(~np.isnan(t) & ~hit & ~flat)
-        if len(idx) == 0:
-            continue
-        tt = t[idx]
-        P, A, B, C = (_lerp(x0[:, idx], x1[:, idx], tt) for x0, x1 in ((p0, p1), (a0, a1), (b0, b1), (c0, c1)))
-        ee = is_ee[idx]
-        # vertex-face: barycentric coordinates of P in (A, B, C)
-        e0, e1, e2 = B - A, C - A, P - A
-        # edge-edge (u, v | k, l) = (B, C | A, P): line parameters of the closest points
-        d1, d2, r = C - B, P - A, B - A
-        x, y, w = np.where(ee, d1, e0), np.where(ee, d2, e1), np.where(ee, r, e2)
-        xx, xy, yy, wx, wy = _dot(x, x), _dot(x, y), _dot(y, y), _dot(w, x), _dot(w, y)
-        den = xx * yy - xy * xy
-        bad = den <= 1e-24 * (xx * yy) + 1e-300
-        with np.errstate(invalid="ignore", divide="ignore"):
-            # vf: beta, gamma; ee: s along (u,v) = (xy*wy - wx*yy)/den with w = u - k sign flipped below
-            u1 = (yy * wx - xy * wy) / den
-            u2 = (xx * wy - xy * wx) / den
-        # For ee, r = u - k, so the closest-point parameters are s = -u1 and w = u2.
-        tol = INSIDE_TOL
-        inside_vf = (u1 >= -tol) & (u2 >= -tol) & (u1 + u2 <= 1 + tol)
-        s_ee = -u1
-        inside_ee = (s_ee >= -tol) & (s_ee <= 1 + tol) & (u2 >= -tol) & (u2 <= 1 + tol)
-        inside = np.where(ee, inside_ee, inside_vf)
-        degenerate[idx[bad]] = True
-        ok = inside & ~bad
-        hit[idx[ok]] = True
-        toi[idx[ok]] = tt[ok]
-    depth = np.zeros(K)
-    if hit.any():
-        h = np.flatnonzero(hit)
-        depth[h] = _depth_soa([x[:, h] for x in pts], is_ee[h], bern[h])
+def _narrow_points(points: list[np.ndarray], is_ee: bool) -> NarrowResult:
+    X0, X1, quads = stack_quads(points)
+    flags = np.full(len(quads), is_ee, dtype=bool)
+    _, hit, toi, depth, degenerate = filter_narrow_quads(X0, X1, quads, flags, True)
     return NarrowResult(hit=hit, toi=toi, depth=depth, degenerate=degenerate)
-
-
-def _start_side(b: np.ndarray) -> np.ndarray:
-    # Side at t0 = sign f(0); if f(0) == 0 the pair "starts" opposite to where it ends.
-    s = np.sign(b[:, 0])
-    return np.where(s == 0, -np.sign(b[:, 3]), s)
-
-
-def _depth_soa(pts, is_ee, bern) -> np.ndarray:
-    """Wrong-side depth at t1 (m): plane distance (vf) or line distance (ee), 0 if on the start side."""
-    p1, a1, b1, c1 = pts[4], pts[5], pts[6], pts[7]
-    # vf: n = (b-a) x (c-a), f = (p-a).n.  ee (u,v|k,l) = (b,c|a,p): n = (v-u) x (l-k), f = -(k-u).n,
-    # which has the sign of the coplanarity cubic at t1.
-    n_vf = _cross3(b1 - a1, c1 - a1)
-    n_ee = _cross3(c1 - b1, p1 - a1)
-    n = np.where(is_ee, n_ee, n_vf)
-    f1 = np.where(is_ee, -_dot(a1 - b1, n_ee), _dot(p1 - a1, n_vf))
-    nn = np.sqrt(_dot(n, n))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d = np.where(nn > 0, -_start_side(bern) * f1 / nn, 0.0)
-    return np.maximum(d, 0.0)
 
 
 def vertex_face_narrow(p0, a0, b0, c0, p1, a1, b1, c1) -> NarrowResult:
     """Crossing, toi and plane depth at t1 for K vertex-triangle pairs ([K,3] positions, m)."""
-    pts = _soa_inputs((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1", "c1"))
-    bern, flat = bernstein_from_soa(pts)
-    return narrow_soa(pts, np.zeros(pts[0].shape[1], dtype=bool), bern, flat)
+    pts = _narrow_inputs((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1", "c1"))
+    return _narrow_points(pts, False)
 
 
 def edge_edge_narrow(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1) -> NarrowResult:
     """Crossing, toi and line depth at t1 for K edge-edge pairs (ipctk argument order)."""
-    u0, v0, k0, l0, u1, v1, k1, l1 = _soa_inputs(
+    u0, v0, k0, l0, u1, v1, k1, l1 = _narrow_inputs(
         (ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1),
         ("ea0_t0", "ea1_t0", "eb0_t0", "eb1_t0", "ea0_t1", "ea1_t1", "eb0_t1", "eb1_t1"))
-    pts = [l0, k0, u0, v0, l1, k1, u1, v1]
-    bern, flat = bernstein_from_soa(pts)
-    return narrow_soa(pts, np.ones(pts[0].shape[1], dtype=bool), bern, flat)
+    return _narrow_points([l0, k0, u0, v0, l1, k1, u1, v1], True)
 
 
 def _torch_start_side(f0: torch.Tensor, f1: torch.Tensor) -> torch.Tensor:

@@ -13,18 +13,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from numba import njit
 
 from colgnn_core.collision.broad_phase import CandidatePairs, Surface, ToolSDFBound, step_candidates
 from colgnn_core.collision.broad_phase import _check_positions as _positions
-from colgnn_core.collision.filter import coefficients_soa, keep_from_coefficients
-from colgnn_core.collision.narrow_phase import (NarrowResult, bernstein_from_coefficients, edge_edge_depth_torch,
-                                                 narrow_soa, vertex_face_depth_torch)
+from colgnn_core.collision.filter import keep_quads
+from colgnn_core.collision.narrow_phase import (NarrowResult, edge_edge_depth_torch, filter_narrow_quads,
+                                                 vertex_face_depth_torch)
 from colgnn_core.errors import InputError
 
-__all__ = ["CollisionDetector", "StepCollisions", "pair_points", "coplanarity_points", "filter_pairs"]
-
-_U = np.finfo(np.float64).eps / 2
-
+__all__ = ["CollisionDetector", "StepCollisions", "pair_points", "pair_quads", "stacked_positions", "filter_pairs",
+           "warm_up_kernels"]
 
 def pair_points(kind: str, pairs: np.ndarray, object_t0, object_t1, tool_t0, tool_t1, object_surface: Surface,
                 tool_surface: Surface) -> list:
@@ -52,40 +51,98 @@ def pair_points(kind: str, pairs: np.ndarray, object_t0, object_t1, tool_t0, too
     raise ValueError(f"unknown pair kind {kind!r}")
 
 
-def coplanarity_points(kind: str, pairs: np.ndarray, XT: tuple, object_surface: Surface,
-                       tool_surface: Surface) -> list[np.ndarray]:
-    """The 8 [3,K] arrays (p, a, b, c at t0, then t1) of the coplanarity cubic for candidate pairs.
+@njit(cache=True)
+def _quads_kernel(vf, fv, ee, object_faces, object_edges, tool_faces, tool_edges, n_object):
+    K = len(vf) + len(fv) + len(ee)
+    quads = np.empty((K, 4), dtype=np.int64)
+    is_ee = np.zeros(K, dtype=np.bool_)
+    r = 0
+    for k in range(len(vf)):
+        g = vf[k, 1]
+        quads[r, 0] = vf[k, 0]
+        for i in range(3):
+            quads[r, 1 + i] = tool_faces[g, i] + n_object
+        r += 1
+    for k in range(len(fv)):
+        f = fv[k, 1]
+        quads[r, 0] = fv[k, 0] + n_object
+        for i in range(3):
+            quads[r, 1 + i] = object_faces[f, i]
+        r += 1
+    for k in range(len(ee)):
+        e, h = ee[k, 0], ee[k, 1]
+        # (u, v | k, l) -> p = l, triangle (k, u, v)
+        quads[r, 0] = tool_edges[h, 1] + n_object
+        quads[r, 1] = tool_edges[h, 0] + n_object
+        quads[r, 2] = object_edges[e, 0]
+        quads[r, 3] = object_edges[e, 1]
+        is_ee[r] = True
+        r += 1
+    return quads, is_ee
 
-    XT = (object_t0, object_t1, tool_t0, tool_t1) as [3,N] / [3,M] arrays. Edge-edge pairs
-    (u, v | k, l) become p = l, triangle (k, u, v).
+
+def pair_quads(pairs: CandidatePairs, object_surface: Surface, tool_surface: Surface
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Coplanarity quads of candidate pairs, in the order vf, fv, ee.
+
+    Returns (quads [K,4] int64 rows (p, a, b, c) into the stacked positions [object; tool]
+    (see :func:`stacked_positions`), is_ee [K] bool). Edge-edge pairs (u, v | k, l) become
+    p = l, triangle (k, u, v).
     """
-    pts = pair_points(kind, pairs, *(_ColumnGather(x) for x in XT), object_surface, tool_surface)
-    if kind == "ee":
-        ea0, ea1, eb0, eb1, fa0, fa1, fb0, fb1 = pts
-        pts = [eb1, eb0, ea0, ea1, fb1, fb0, fa0, fa1]
-    return pts
+    return _quads_kernel(pairs.vf, pairs.fv, pairs.ee, object_surface.faces, object_surface.edges,
+                         tool_surface.faces, tool_surface.edges, object_surface.n_vertices)
+
+
+def stacked_positions(object_x, tool_x) -> np.ndarray:
+    """[N+M,3] float64: object positions then tool positions (what :func:`pair_quads` indexes)."""
+    return np.concatenate([np.asarray(object_x, dtype=np.float64), np.asarray(tool_x, dtype=np.float64)])
 
 
 def filter_pairs(kind: str, pairs: np.ndarray, object_t0, object_t1, tool_t0, tool_t1, object_surface: Surface,
                  tool_surface: Surface) -> np.ndarray:
     """Keep mask [K] of the non-penetration filter for candidate pairs of one kind ('vf', 'fv', 'ee')."""
-    if len(pairs) == 0:
-        return np.zeros(0, dtype=bool)
-    XT = tuple(np.ascontiguousarray(np.asarray(x, dtype=np.float64).T) for x in (object_t0, object_t1, tool_t0, tool_t1))
-    coef, mag = coefficients_soa(*coplanarity_points(kind, pairs, XT, object_surface, tool_surface))
-    return keep_from_coefficients(coef, mag, _U)
+    if kind not in ("vf", "fv", "ee"):
+        raise ValueError(f"unknown pair kind {kind!r}")
+    cand = CandidatePairs()
+    setattr(cand, kind, np.asarray(pairs, dtype=np.int64).reshape(-1, 2))
+    quads, _ = pair_quads(cand, object_surface, tool_surface)
+    return keep_quads(stacked_positions(object_t0, tool_t0), stacked_positions(object_t1, tool_t1), quads)
 
 
-class _ColumnGather:
-    """Indexing adaptor: X[idx] on a [3,N] array returns the [3,K] columns."""
+_KERNELS_READY = False
 
-    __slots__ = ("a",)
 
-    def __init__(self, a: np.ndarray) -> None:
-        self.a = a
+def warm_up_kernels() -> None:
+    """Load every numba kernel of the collision code (compiling it the first time on a machine,
+    ~15 s, then cached on disk: ~0.4 s), so that the first real step is not the slow one.
+    Idempotent; :class:`CollisionDetector` calls it."""
+    global _KERNELS_READY
+    if _KERNELS_READY:
+        return
+    from colgnn_core.collision import broad_phase as bp
+    from colgnn_core.collision.narrow_phase import cubic_roots_01, depth_quads
 
-    def __getitem__(self, idx):
-        return self.a[:, idx]
+    # A vertex moving through a triangle: every kernel runs on real (tiny) data.
+    faces = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]], dtype=np.int64)
+    obj0 = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    tool_faces = np.array([[0, 1, 2]], dtype=np.int64)
+    tool0 = np.array([[0.1, 0.1, 0.5], [0.9, 0.1, 0.5], [0.1, 0.9, 0.5]]) + [0, 0, 1.0]
+    tool1 = tool0 - [0, 0, 1.0]
+    so, st = Surface.from_faces(faces, 4), Surface.from_faces(tool_faces, 3)
+    cand = step_candidates(obj0, obj0, so, tool0, tool1, st, check=False)
+    quads, is_ee = pair_quads(cand, so, st)
+    X0, X1 = stacked_positions(obj0, tool0), stacked_positions(obj0, tool1)
+    filter_narrow_quads(X0, X1, quads, is_ee, True)
+    keep_quads(X0, X1, quads)
+    depth_quads(X0, X1, quads, is_ee)
+    cubic_roots_01(np.array([[-1.0, 0.0, 0.0, 1.0]]))
+    S = so.vertices
+    lb0, lb1 = bp._sphere_bounds(obj0, obj0, S, np.zeros(3), np.zeros(3), 0.1)
+    ve, vf = so.vertex_edges, so.vertex_faces
+    bp._near_primitives(obj0, obj0, S, lb0, lb1, 1.0, 2.0, so.edges, so.faces, ve[0], ve[1], vf[0], vf[1])
+    bp._max_edge_length(obj0, so, {})
+    bp.box_pairs(obj0, obj0 + 0.1, obj0, obj0)
+    _KERNELS_READY = True
 
 
 @dataclass
@@ -130,6 +187,7 @@ class CollisionDetector:
     """
 
     def __init__(self, object_faces, tool_faces, n_object: int, n_tool: int, tool=None) -> None:
+        warm_up_kernels()
         self.object_surface = Surface.from_faces(object_faces, n_object, "object")
         self.tool_surface = Surface.from_faces(tool_faces, n_tool, "tool")
         self.tool_bound = ToolSDFBound(tool) if tool is not None else None
@@ -149,37 +207,28 @@ class CollisionDetector:
             object_t1 = _positions(object_t1, self.object_surface.n_vertices, "object_t1")
             tool_t0 = _positions(tool_t0, self.tool_surface.n_vertices, "tool_t0")
             tool_t1 = _positions(tool_t1, self.tool_surface.n_vertices, "tool_t1")
-        XT = tuple(np.ascontiguousarray(np.asarray(x, dtype=np.float64).T)
-                   for x in (object_t0, object_t1, tool_t0, tool_t1))
         cand = step_candidates(object_t0, object_t1, self.object_surface, tool_t0, tool_t1, self.tool_surface,
                                tool_bound=self.tool_bound, tool_pose_t0=tool_pose_t0, tool_pose_t1=tool_pose_t1,
-                               check=check, cache=self._cache, transposed=XT)
+                               check=check, cache=self._cache)
         t_broad = time.perf_counter()
         kinds = ("vf", "fv", "ee")
-        sizes = [len(getattr(cand, k)) for k in kinds]
-        # One filter call over all kinds: the cost is per numpy call, not per pair.
-        parts = [coplanarity_points(k, getattr(cand, k), XT, *self._surfaces()) for k in kinds]
-        pts = [np.concatenate([p[i] for p in parts], axis=1) for i in range(8)]
-        coef, mag = coefficients_soa(*pts)
-        keep = keep_from_coefficients(coef, mag, _U)
-        bounds = np.cumsum([0] + sizes)
+        quads, is_ee = pair_quads(cand, *self._surfaces())
+        # One kernel call: filter every pair, narrow phase on the kept ones.
+        keep, hit, toi, depth, degenerate = filter_narrow_quads(
+            stacked_positions(object_t0, tool_t0), stacked_positions(object_t1, tool_t1), quads, is_ee, narrow)
+        bounds = np.cumsum([0] + [len(getattr(cand, k)) for k in kinds])
         surv = CandidatePairs()
-        for i, k in enumerate(kinds):
-            setattr(surv, k, getattr(cand, k)[keep[bounds[i]:bounds[i + 1]]])
-        t_filter = time.perf_counter()
         out = StepCollisions(candidates=cand, survivors=surv)
-        if narrow:
-            sel = np.flatnonzero(keep)
-            is_ee = sel >= bounds[2]
-            bern, flat = bernstein_from_coefficients([c[sel] for c in coef], [m[sel] for m in mag])
-            res = narrow_soa([x[:, sel] for x in pts], is_ee, bern, flat)
-            kind_of = np.searchsorted(bounds[1:], sel, side="right")
-            for i, k in enumerate(kinds):
-                m = kind_of == i
-                setattr(out, k, NarrowResult(res.hit[m], res.toi[m], res.depth[m], res.degenerate[m]))
+        for i, k in enumerate(kinds):
+            sl = slice(bounds[i], bounds[i + 1])
+            kept = keep[sl]
+            setattr(surv, k, getattr(cand, k)[kept])
+            if narrow:
+                setattr(out, k, NarrowResult(hit[sl][kept], toi[sl][kept], depth[sl][kept], degenerate[sl][kept]))
         t_end = time.perf_counter()
-        out.timings_ms = {"broad": 1e3 * (t_broad - t_start), "filter": 1e3 * (t_filter - t_broad),
-                          "narrow": 1e3 * (t_end - t_filter), "total": 1e3 * (t_end - t_start)}
+        # Filter and narrow phase run fused in one kernel: "filter_narrow" is their joint time.
+        out.timings_ms = {"broad": 1e3 * (t_broad - t_start), "filter_narrow": 1e3 * (t_end - t_broad),
+                          "total": 1e3 * (t_end - t_start)}
         return out
 
     def crossing_depths_torch(self, object_t0, object_t1: torch.Tensor, tool_t0, tool_t1, tool_pose_t0=None,
