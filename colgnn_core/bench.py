@@ -29,7 +29,7 @@ def rmse_fraction(pred: np.ndarray, truth: np.ndarray, diagonal: float) -> np.nd
 
 
 def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
-          correction: bool = True, progress: bool = False) -> dict:
+          correction: bool = True, progress: bool = False, compile: bool = False) -> dict:
     """Benchmark one scene. Returns the JSON fields of the ``colgnn bench`` contract.
 
     Args:
@@ -37,6 +37,7 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
             checkpoint's.
         frames: trajectory length including the rest frame (≥ 3).
         threads: torch threads of the Predictor (the solver uses numpy/scipy's own).
+        compile: torch.compile the network first (see :class:`~colgnn_core.predictor.Predictor`).
     """
     from colgnn_core.predictor import Predictor
     from colgnn_core.scenes import scene_names
@@ -47,7 +48,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
     if frames < 3:
         raise InputError(f"frames must be >= 3, got {frames}")
-    predictor = Predictor.from_checkpoint(checkpoint or scene_name, correction=correction, threads=threads)
+    predictor = Predictor.from_checkpoint(checkpoint or scene_name, correction=correction, threads=threads,
+                                          compile=compile)
     scene = predictor.scene
     if scene.name != scene_name:
         raise InputError(f"checkpoint is for scene {scene.name!r}, not {scene_name!r}")
@@ -92,6 +94,7 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "crossings_after_correction": int(after),
         "fallbacks": int(fallbacks),
         "threads": int(torch.get_num_threads()),
+        "compiled": bool(predictor.compiled),
         "vertices": int(len(scene.object.vertices)),
         "surface_vertices": int(len(scene.object.surface_vertices)),
         "edges": int(len(scene.object.edges)),
@@ -105,7 +108,7 @@ def format_bench(r: dict) -> str:
     rows = [("total", r["total_ms"]), ("graph", r["graph_ms"]), ("gnn", r["gnn_ms"]),
             ("correction", r["correction_ms"]), ("IPC solver", r["ipc_ms"])]
     lines = [f"{r['scene']} ({r['resolution']}): {r['vertices']} vertices, {r['edges']} surface edges, "
-             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} threads, load {r['load_average_1min']:.1f}",
+             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
              f"{'stage':<12}{'median ms':>11}{'p95 ms':>10}"]
     lines += [f"{name:<12}{s['median']:>11.2f}{s['p95']:>10.2f}" for name, s in rows]
     e = r["rollout_rmse"]

@@ -114,7 +114,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 0
 
     result = bench(args.scene, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
-                   correction=not args.no_correction, progress=not args.json)
+                   correction=not args.no_correction, progress=not args.json, compile=args.compile)
     print(json.dumps(result, indent=2) if args.json else format_bench(result))
     return 0
 
@@ -239,6 +239,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--frames", type=_positive, default=40, help="trajectory length, rest frame included")
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
+    p.add_argument("--compile", action="store_true", help="torch.compile the network first (faster steps)")
     p.add_argument("--collision", action="store_true",
                    help="instead: collision detection (broad + filter + narrow) vs ipctk's CCD on one contact step")
     p.add_argument("--resolution", default="full", help="with --collision: scene resolution (full or ci)")

@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> dict:
                 "-p", f"checkpoint:={checkpoint}", "-p", f"threads:={args.threads}",
                 "-p", f"correction:={'true' if args.correction else 'false'}",
                 "-p", f"color_by_distance:={'true' if args.color else 'false'}",
-                "-p", f"step_on_arrival:={'false' if args.timer_only else 'true'}"]
+                "-p", f"step_on_arrival:={'false' if args.timer_only else 'true'}",
+                "-p", f"compile:={'true' if args.compile else 'false'}"]
     pub_cmd = [py, "-m", "colgnn_ros.pose_publisher_node", "--ros-args", "-p", f"scene:={meta.scene}",
                "-p", f"resolution:={meta.resolution}", "-p", f"trajectory:={args.trajectory}",
                "-p", "frames:=250", "-p", f"rate:={float(args.rate)}", "-p", "loop:=true",
@@ -151,7 +152,7 @@ def run(args: argparse.Namespace) -> dict:
     slope = float(np.polyfit(t[after], mb[after], 1)[0] * 60.0) if after.sum() >= 3 else float("nan")
     return {
         "scene": meta.scene, "resolution": meta.resolution, "checkpoint": str(checkpoint), "rate_hz": args.rate,
-        "threads": args.threads, "correction": args.correction, "step_on_arrival": not args.timer_only, "duration_s": round(float(t[-1]) if len(t) else 0, 1),
+        "threads": args.threads, "compile": args.compile, "correction": args.correction, "step_on_arrival": not args.timer_only, "duration_s": round(float(t[-1]) if len(t) else 0, 1),
         "poses": len(counted), "meshes": int(len(latency_ms)),
         "mesh_fraction": float(len(latency_ms) / len(counted)) if counted else 0.0,
         "latency_ms_median": med, "latency_ms_p95": p95,
@@ -171,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of poses (default 30; 600 for the memory check)")
     ap.add_argument("--trajectory", default="press", help="pose_publisher's scripted motion, looped (default press)")
     ap.add_argument("--threads", type=int, default=1, help="the node's torch threads (default 1)")
+    ap.add_argument("--compile", action="store_true", help="the node torch.compiles its network at start-up")
     ap.add_argument("--no-correction", dest="correction", action="store_false")
     ap.add_argument("--no-color", dest="color", action="store_false", help="no per-vertex colours in the marker")
     ap.add_argument("--timer-only", action="store_true",

@@ -209,3 +209,17 @@ def test_from_checkpoint_needs_a_model(scene):
         Predictor.from_checkpoint("knife_torus")
     with pytest.raises(InputError, match="max_substeps"):
         _pred(scene, max_substeps=0)
+
+
+def test_compiled_network_matches_eager(scene, ckpt):
+    """compile=True: the same trajectory within float32 rounding of the eager network, and the
+    compiled function is the one in use (no silent fallback)."""
+    eager = Predictor.from_checkpoint(ckpt, threads=1, correction=False)
+    fast = Predictor.from_checkpoint(ckpt, threads=1, correction=False, compile=True)
+    assert fast.compiled and not eager.compiled
+    assert fast.model.core_outputs.failure is None
+    scale = scene.bbox_diagonal()
+    for pose in _contact_poses(scene, 8)[1:]:
+        a, b = eager.step(pose), fast.step(pose)
+        assert np.abs(a.positions - b.positions).max() < 1e-5 * scale
+    assert fast.model.core_outputs.failure is None

@@ -136,8 +136,12 @@ class Simulator(nn.Module):
 
     def network(self, g: GraphInputs, accumulate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Normalised acceleration [N,3] and final processor latents [N,latent] of the object nodes."""
-        latent_graph = self.core.process(self.core.encode(self.normalise_graph(g, accumulate)))
-        latents = latent_graph.node_features[: g.num_object_nodes]  # tool nodes need no decoding
+        return self.core_outputs(self.normalise_graph(g, accumulate), g.num_object_nodes)
+
+    def core_outputs(self, graph: MultiGraph, num_object_nodes: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Encode-process-decode a normalised graph: (outputs, final latents) of the object nodes."""
+        latent_graph = self.core.process(self.core.encode(graph))
+        latents = latent_graph.node_features[:num_object_nodes]  # tool nodes need no decoding
         return self.core.decode(latents), latents
 
     def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
@@ -151,6 +155,16 @@ class Simulator(nn.Module):
     def decode_latent(self, z: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
         """Positions at t+1 decoded from latents ``z`` [N,latent] instead of the processor's (L_compact)."""
         return self.integrate(self.core.decode(z), x_t, x_prev)
+
+    def compile_network(self) -> None:
+        """Run :meth:`core_outputs` through ``torch.compile`` (inductor: fused C++ kernels, ~1.8x faster on a CPU).
+
+        For inference: the first call per grad mode and world-edge count class (0, or 2+) compiles
+        (seconds; torch caches the result on disk for later processes). If compiling fails (e.g. no
+        C++ compiler), a warning is issued and the eager network is used from then on.
+        """
+        if not isinstance(self.__dict__.get("core_outputs"), _CompiledOrEager):
+            self.core_outputs = _CompiledOrEager(self.core_outputs)
 
     # -- entry points -----------------------------------------------------------------------------------------
     def predict(self, frame: Frame) -> torch.Tensor:
@@ -194,3 +208,24 @@ class Simulator(nn.Module):
         if x_next is None:
             return self.predict(frame)
         return self.training_outputs(frame, x_next, **kwargs)
+
+
+class _CompiledOrEager:
+    """A compiled function that falls back, once and for good, to its eager original on any failure."""
+
+    def __init__(self, fn) -> None:
+        self.eager = fn
+        self.compiled = torch.compile(fn, dynamic=True)
+        self.failure: Exception | None = None
+
+    def __call__(self, *args, **kwargs):
+        if self.failure is None:
+            try:
+                return self.compiled(*args, **kwargs)
+            except Exception as exc:  # noqa: BLE001 - any compiler failure: keep simulating, eagerly
+                import warnings
+
+                self.failure = exc
+                warnings.warn(f"torch.compile failed, running the network eagerly: {type(exc).__name__}: {exc}",
+                              RuntimeWarning, stacklevel=2)
+        return self.eager(*args, **kwargs)
