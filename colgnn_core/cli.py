@@ -122,6 +122,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from colgnn_core.evaluate import evaluate, format_markdown
 
+    if args.frontier:
+        from colgnn_core.frontier import format_frontier, frontier
+
+        ckpts = args.frontier_checkpoints or ([args.checkpoint] if args.checkpoint else [args.scene])
+        result = frontier(args.scene, ckpts, args.data, args.out, steps=args.steps,
+                          max_sequences=args.max_sequences or 2, threads=args.threads, compile=args.compile,
+                          ipc=not args.no_ipc, exact=not args.no_exact, progress=not args.quiet)
+        print(format_frontier(result))
+        print("wrote " + ", ".join(result["files"].values()))
+        return 0
+
     result = evaluate(args.scene, checkpoint=args.checkpoint, data_dir=args.data, out_dir=args.out,
                       correction_modes=("raw",) if args.no_correction else ("raw", "corrected"),
                       exact=not args.no_exact, max_sequences=args.max_sequences, progress=not args.quiet)
@@ -258,6 +269,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--no-correction", action="store_true", help="evaluate the raw network only")
     p.add_argument("--max-sequences", type=_positive, default=None, help="only the first N test sequences")
     p.add_argument("--quiet", action="store_true", help="no per-sequence lines")
+    p.add_argument("--frontier", action="store_true",
+                   help="instead: speed against error of --checkpoints (raw and corrected) and the IPC solver "
+                        "at 3 settings, on the same test poses: frontier.json/.md/.png")
+    p.add_argument("--checkpoints", dest="frontier_checkpoints", nargs="+", default=None,
+                   help="with --frontier: the GNN checkpoints (default: --checkpoint or the shipped model)")
+    p.add_argument("--steps", type=_positive, default=40, help="with --frontier: rollout steps (default 40)")
+    p.add_argument("--threads", type=_positive, default=2, help="with --frontier: torch threads (default 2)")
+    p.add_argument("--compile", action="store_true", help="with --frontier: torch.compile the networks")
+    p.add_argument("--no-ipc", action="store_true", help="with --frontier: leave out the solver points")
     handlers["evaluate"] = cmd_evaluate
 
     p = sub.add_parser("render", help="render a sequence or rollout file")

@@ -1,6 +1,7 @@
 """``colgnn evaluate`` on the tiny trained model and tiny real dataset of _train_fixtures."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -97,3 +98,25 @@ def test_cli_raw_only_narrow_phase(tmp_path, capsys):
     data = json.loads((tmp_path / "metrics.json").read_text())
     assert data["modes"] == ["raw"] and not data["exact"] and len(data["sequences"]) == 1
     assert set(data["rows"]) == {"ground_truth", "raw"} and (tmp_path / "rmse_over_time.png").is_file()
+
+
+def test_frontier_points_table_and_plot(tmp_path, capsys):
+    """--frontier: a raw and a corrected point per checkpoint plus the solver points, measured in one run."""
+    ckpts = [str(fx.trained_checkpoint("full")), str(fx.trained_checkpoint("baseline"))]
+    out = tmp_path / "frontier"
+    assert main(["evaluate", "--frontier", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(out),
+                 "--checkpoints", *ckpts, "--steps", "6", "--max-sequences", "1", "--threads", "1", "--quiet"]) == 0
+    r = json.loads((out / "frontier.json").read_text())
+    kinds = [p["kind"] for p in r["points"]]
+    assert kinds == ["raw", "corrected", "raw", "corrected", "ipc", "ipc", "ipc"]
+    for p in r["points"]:
+        assert p["ms_median"] > 0 and math.isfinite(p["rmse_last"]) and p["rmse_last"] >= 0
+    data_ipc = r["points"][4]
+    assert data_ipc["label"] == "IPC (data settings)" and data_ipc["rmse_last"] < 1e-6  # it is the reference
+    assert all(p["crossings"] == 0 and p["intersecting_frames"] == 0 for p in r["points"] if p["kind"] != "raw")
+    assert (out / "frontier.png").stat().st_size > 10_000
+    assert "| method | ms/step" in (out / "frontier.md").read_text() and "wrote" in capsys.readouterr().out
+    with pytest.raises(InputError, match="at least one checkpoint"):
+        from colgnn_core.frontier import frontier
+
+        frontier(fx.SCENE, [], fx.dataset_dir(), tmp_path)

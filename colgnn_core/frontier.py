@@ -1,0 +1,204 @@
+"""``colgnn evaluate --frontier``: speed against error, every method on the same test poses in one run.
+
+Points (each one the mean over the chosen held-out test sequences, cut to ``steps`` + 1 frames):
+
+* every given GNN checkpoint, raw and with the collision-aware correction (labelled by variant and
+  latent / message-passing steps / MLP layers);
+* the IPC solver at the settings the data was generated with (its error is 0 by definition: it *is* the
+  reference) and at looser settings (``IPC_SETTINGS``: a 10x looser Newton tolerance, a 2x larger d-hat),
+  re-simulated here so that its time is measured in the same run.
+
+x = median wall ms per step (Predictor / network step, or solver step); y = RMSE of all mesh vertices at the
+last step, as a fraction of the bbox diagonal; every point carries its exact crossing count (N_vf + N_ee
+summed over the steps, ipctk oracle) and intersecting frames. Outputs in ``out_dir``: ``frontier.json``
+(atomic), ``frontier.md`` and ``frontier.png`` (log x).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from colgnn_core.bench import rmse_fraction
+from colgnn_core.collision.metrics import sequence_metrics
+from colgnn_core.errors import InputError
+from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
+
+IPC_SETTINGS: tuple[tuple[str, dict], ...] = (
+    ("IPC (data settings)", {}),
+    ("IPC newton_tol x10", {"newton_tol": 1e-1}),
+    ("IPC dhat x2", {"dhat_scale": 2.0}),
+)
+
+
+def _label(loaded, path) -> str:
+    m = loaded.simulator.config if hasattr(loaded.simulator, "config") else None
+    size = f" {m.latent}/{m.message_passing_steps}/{m.mlp_layers}" if m is not None else ""
+    return f"{loaded.meta.variant}{size} ({Path(str(path)).stem})"
+
+
+def _point(label: str, kind: str, seqs: list, truths: list, ms: list[float], diagonal: float, exact: bool) -> dict:
+    """One frontier point from rollouts ``seqs`` against ``truths`` (Sequences) and per-step times ``ms``."""
+    from colgnn_core.evaluate import _collision_aggregate
+
+    last = [float(rmse_fraction(s.object_positions, t.object_positions, diagonal)[-1]) for s, t in zip(seqs, truths)]
+    agg = _collision_aggregate([sequence_metrics(s, exact=exact) for s in seqs])
+    return {"label": label, "kind": kind, "ms_median": float(np.median(ms)), "rmse_last": float(np.mean(last)),
+            "rmse_last_std": float(np.std(last)), "crossings": agg["N_vf_total"] + agg["N_ee_total"],
+            "intersecting_frames": agg["intersecting_frames"]}
+
+
+def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier", *, steps: int = 40,
+             max_sequences: int = 2, threads: int = 2, compile: bool = False, ipc: bool = True,
+             exact: bool = True, progress: bool = True) -> dict:
+    """Measure the speed/error frontier of ``checkpoints`` (and the IPC solver) on a scene's test data.
+
+    Args:
+        scene_name: the scene; every checkpoint must be of it, at the data's resolution.
+        checkpoints: GNN checkpoint paths (at least one).
+        data_dir: dataset folder with ``test_XXXX.npz`` (``colgnn generate``).
+        steps: rollout length (the sequences must have at least ``steps`` + 1 frames).
+        max_sequences: how many test sequences (the first ones).
+        threads: torch threads for every network (set process-wide).
+        compile: torch.compile the networks (see :class:`~colgnn_core.predictor.Predictor`).
+        ipc: include the solver points (re-simulated: the slow part at full resolution).
+        exact: crossings with ipctk's exact CCD (False: the project's narrow phase).
+    """
+    from colgnn_core.evaluate import _test_files
+    from colgnn_core.learn.data import load_checked_sequence
+    from colgnn_core.rollout import load_model, rollout
+    from colgnn_core.scenes import load_scene, scene_names
+    from colgnn_core.sim.dataset import simulate_sequence
+
+    if scene_name not in scene_names():
+        raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
+    if not checkpoints:
+        raise InputError("the frontier needs at least one checkpoint")
+    if steps < 1 or max_sequences < 1 or threads < 1:
+        raise InputError(f"steps, max_sequences and threads must be >= 1, got {steps}, {max_sequences}, {threads}")
+    models = [load_model(c) for c in checkpoints]
+    resolutions = {m.meta.resolution for m in models}
+    for c, m in zip(checkpoints, models):
+        if m.meta.scene != scene_name:
+            raise InputError(f"{c}: checkpoint is for scene {m.meta.scene!r}, not {scene_name!r}")
+    if len(resolutions) != 1:
+        raise InputError(f"the checkpoints mix resolutions {sorted(resolutions)}")
+    scene = load_scene(scene_name, resolutions.pop())
+    files = _test_files(data_dir, scene)[:max_sequences]
+    truths = []
+    for f in files:
+        load_checked_sequence(f, scene)
+        seq = load_sequence(f)
+        if seq.frames < steps + 1:
+            raise InputError(f"{f.name} has {seq.frames} frames; the frontier needs {steps + 1}")
+        truths.append(_head(seq, steps + 1))
+    out = ensure_writable_dir(out_dir)
+    diagonal = scene.bbox_diagonal()
+    torch.set_num_threads(threads)
+    t_start = time.perf_counter()
+    points = []
+    for c, loaded in zip(checkpoints, models):
+        if compile and hasattr(loaded.simulator, "compile_network"):
+            loaded.simulator.compile_network()  # raw and corrected rollouts alike (the median skips compiling)
+        for correction in (False, True):
+            seqs, ms = [], []
+            for t in truths:
+                s = rollout(loaded, t.tool_poses, correction=correction, scene=scene,
+                            initial_positions=t.object_positions[0],
+                            predictor_options={"compile": compile} if correction else None)
+                seqs.append(s)
+                ms.extend(s.extra["step_ms"][1:].tolist())
+            label = _label(loaded, c) + (" + correction" if correction else " raw")
+            points.append(_point(label, "corrected" if correction else "raw", seqs, truths, ms, diagonal, exact))
+            if progress:
+                print(f"{label}: {points[-1]['ms_median']:.2f} ms/step, RMSE@{steps} {points[-1]['rmse_last']:.2e}",
+                      flush=True)
+    if ipc:
+        for label, options in IPC_SETTINGS:
+            seqs, ms = [], []
+            for t in truths:
+                s = simulate_sequence(scene, t.tool_poses, **options)
+                seqs.append(s)
+                ms.extend(s.extra["step_ms"][1:].tolist())
+            points.append(_point(label, "ipc", seqs, truths, ms, diagonal, exact))
+            if progress:
+                print(f"{label}: {points[-1]['ms_median']:.1f} ms/step, RMSE@{steps} {points[-1]['rmse_last']:.2e}",
+                      flush=True)
+    result = {
+        "scene": scene.name, "resolution": scene.resolution, "steps": steps, "threads": threads,
+        "compiled": bool(compile), "exact": bool(exact), "sequences": [f.name for f in files],
+        "cpu_count": os.cpu_count(), "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "points": points, "wall_s": time.perf_counter() - t_start,
+    }
+    paths = {"json": out / "frontier.json", "markdown": out / "frontier.md", "plot": out / "frontier.png"}
+    result["files"] = {k: str(v) for k, v in paths.items()}
+    with atomic_write(paths["markdown"], "w") as fh:
+        fh.write(format_frontier(result))
+    plot_frontier(result, paths["plot"])
+    with atomic_write(paths["json"], "w") as fh:
+        json.dump(result, fh, indent=1)
+    return result
+
+
+def _head(seq, frames: int):
+    """The first ``frames`` frames of a Sequence (per-frame arrays cut, the rest kept)."""
+    import dataclasses
+
+    cut = {}
+    for f in dataclasses.fields(seq):
+        v = getattr(seq, f.name)
+        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == seq.frames and f.name not in (
+                "object_faces", "tool_faces"):
+            cut[f.name] = v[:frames]
+    extra = {k: (v[:frames] if isinstance(v, np.ndarray) and v.shape[:1] == (seq.frames,) else v)
+             for k, v in seq.extra.items()}
+    return dataclasses.replace(seq, **cut, extra=extra)
+
+
+def format_frontier(result: dict) -> str:
+    """Markdown table of the frontier points, fastest first."""
+    lines = [f"# Speed against error: {result['scene']} ({result['resolution']})", "",
+             f"{len(result['sequences'])} test sequence(s), {result['steps']} steps, {result['threads']} torch "
+             f"thread(s){', compiled' if result['compiled'] else ''}; crossings = N_vf + N_ee summed over the steps "
+             f"({'ipctk exact CCD' if result['exact'] else 'narrow phase'}).", "",
+             f"| method | ms/step (median) | RMSE at step {result['steps']} (% of bbox diagonal) | crossings | "
+             "intersecting frames |", "|---|---|---|---|---|"]
+    for p in sorted(result["points"], key=lambda p: p["ms_median"]):
+        lines.append(f"| {p['label']} | {p['ms_median']:.2f} | {100 * p['rmse_last']:.3f} ± "
+                     f"{100 * p['rmse_last_std']:.3f} | {p['crossings']} | {p['intersecting_frames']} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_frontier(result: dict, path: Path) -> Path:
+    """Log-x scatter of ms/step against RMSE, crossings annotated; written atomically as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    style = {"raw": ("o", "tab:orange"), "corrected": ("s", "tab:blue"), "ipc": ("^", "tab:green")}
+    fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=110)
+    for kind, (marker, color) in style.items():
+        pts = [p for p in result["points"] if p["kind"] == kind]
+        if pts:
+            ax.scatter([p["ms_median"] for p in pts], [100 * p["rmse_last"] for p in pts], marker=marker, color=color,
+                       label={"raw": "GNN raw", "corrected": "GNN + correction", "ipc": "IPC solver"}[kind])
+        for p in pts:
+            ax.annotate(f"{p['label'].split(' (')[0]}\n{p['crossings']} crossings", (p["ms_median"],
+                        100 * p["rmse_last"]), fontsize=6, xytext=(4, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per step (median, log scale)")
+    ax.set_ylabel(f"RMSE at step {result['steps']} (% of bbox diagonal)")
+    ax.set_title(f"{result['scene']} ({result['resolution']}): speed against error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_write(path, "wb") as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+    return path
