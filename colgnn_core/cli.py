@@ -77,8 +77,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     from colgnn_core.learn.train import TrainConfig, train
 
     config = None
-    if args.ccd_form is not None or args.model is not None:
+    if args.ccd_form is not None or args.model is not None or args.graph is not None:
         config = TrainConfig()
+        if args.graph is not None:
+            config.model = {**config.model, "surface_only": args.graph == "surface"}
         if args.ccd_form is not None:
             config.ccd_form = args.ccd_form
         if args.model is not None:
@@ -223,6 +225,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--variant", choices=("full", "baseline", "no-compact", "subspace"), default="full")
     p.add_argument("--resume", action="store_true", help="continue the run stored in --out")
     p.add_argument("--steps", type=_positive, default=None, help="total training steps")
+    p.add_argument("--graph", choices=("surface", "tet"), default=None,
+                   help="graph nodes: surface vertices only, or every tet-mesh vertex (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=_positive, default=None, help="torch threads")
     p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M", help="latent/message-passing steps/MLP layers")

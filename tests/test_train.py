@@ -172,3 +172,20 @@ def test_two_process_data_parallel(tmp_path):
     assert ck["extra"]["world_size"] == 2 and _states_equal(ck["model"], s0)
     # the normalizers saw both ranks' samples: 12 steps x 2 ranks
     assert float(ck["model"]["output_normalizer.num_accumulations"]) == 24
+
+
+def test_cli_graph_choice_sets_the_graph_nodes(tmp_path, capsys):
+    """`colgnn train --graph tet`: every tet-mesh vertex is a node; `--graph surface`: the surface only."""
+    from colgnn_core.cli import main
+    from colgnn_core.rollout import load_model
+
+    scene = fx.scene()
+    n_surface = len(np.unique(scene.object.faces))
+    for graph, nodes in (("tet", len(scene.object.vertices)), ("surface", n_surface)):
+        out = tmp_path / f"{graph}.pt"
+        assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(out), "--steps", "3",
+                     "--model", "8/1/1", "--graph", graph, "--threads", "1", "--quiet"]) == 0
+        loaded = load_model(str(out))
+        assert loaded.simulator.template.num_object_nodes == nodes
+        assert loaded.simulator.config.surface_only == (graph == "surface")
+    assert n_surface < len(scene.object.vertices)
