@@ -108,6 +108,15 @@ def cmd_rollout(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from colgnn_core.bench import bench, format_bench
 
+    if args.stability:
+        from colgnn_core.stability import format_stability, stability
+
+        result = stability(args.checkpoint or args.scene, steps=args.steps, seed=args.seed, threads=args.threads,
+                           compile=args.compile, progress=not args.json)
+        if result["scene"] != args.scene:
+            raise InputError(f"checkpoint is for scene {result['scene']!r}, not {args.scene!r}")
+        print(json.dumps(result, indent=2) if args.json else format_stability(result))
+        return 0
     if args.collision:
         from colgnn_core.collision.benchmark import bench_collision, format_bench_collision
 
@@ -261,6 +270,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--sequence", default=None,
                    help="with --collision: take the deepest-contact step of this sequence file (default: synthetic)")
     p.add_argument("--repeats", type=_positive, default=50, help="with --collision: timed repeats")
+    p.add_argument("--stability", action="store_true",
+                   help="instead: a long random-motion rollout, then the tool leaves: intersections, memory, "
+                        "return to rest")
+    p.add_argument("--steps", type=_positive, default=10_000, help="with --stability: random-motion steps")
+    p.add_argument("--seed", type=int, default=0, help="with --stability: seed of the random motion")
     p.add_argument("--json", action="store_true")
     handlers["bench"] = cmd_bench
 

@@ -18,7 +18,8 @@ import pytest
 import torch
 
 from colgnn_core.collision.correction import CollisionCorrector, certify_triangles, rigid_step
-from colgnn_core.collision.exact import DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, combined_collision_mesh
+from colgnn_core.collision.exact import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, object_tool_collision_mesh,
+                                         tool_intersects)
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
 from colgnn_core.learn.checkpoint import CheckpointMeta, LoadedCheckpoint
@@ -30,33 +31,9 @@ torch.set_num_threads(1)
 
 
 # -- the oracle (ipctk) ---------------------------------------------------------------------------------------------
-def _surface(V, F):
-    ids = np.unique(F)
-    remap = np.full(len(V), -1)
-    remap[ids] = np.arange(len(ids))
-    return np.asarray(V, dtype=np.float64)[ids], remap[F]
-
-
-def _tool_only_mesh(object_V, object_F, tool_V, tool_F):
-    import ipctk
-
-    object_V, object_F = _surface(object_V, object_F)
-    mesh, V = combined_collision_mesh(object_V, object_F, tool_V, tool_F)
-    n = len(object_V)
-    # Object-tool pairs only: link triangles make the object one component, the tool is another.
-    ids = np.arange(n)
-    link = np.stack([np.zeros(n, dtype=np.int64), ids, ids], axis=1)
-    F = np.asfortranarray(np.vstack([object_F, link, np.asarray(tool_F) + n]).astype(np.int32))
-    mesh.can_collide = ipctk.make_connected_components_filter(F)
-    return mesh, V
-
-
 def oracle_intersects(object_V, object_F, tool_V, tool_F) -> bool:
     """ipctk: does the object surface intersect the tool?"""
-    import ipctk
-
-    mesh, V = _tool_only_mesh(object_V, object_F, tool_V, tool_F)
-    return bool(ipctk.has_intersections(mesh, V, broad_phase=ipctk.LBVH()))
+    return tool_intersects(object_V, object_F, tool_V, tool_F)
 
 
 def oracle_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *, contact_only: bool = False) -> bool:
@@ -68,8 +45,8 @@ def oracle_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *
     """
     import ipctk
 
-    mesh, V0 = _tool_only_mesh(object_V0, object_F, tool_V0, tool_F)
-    V1 = np.asfortranarray(np.vstack([_surface(object_V1, object_F)[0], tool_V1]))
+    mesh, V0 = object_tool_collision_mesh(object_V0, object_F, tool_V0, tool_F)
+    V1 = np.asfortranarray(np.vstack([np.asarray(object_V1)[np.unique(object_F)], tool_V1]))
     ccd = ipctk.TightInclusionCCD(tolerance=DEFAULT_TOLERANCE, max_iterations=DEFAULT_MAX_ITERATIONS,
                                   conservative_rescaling=1.0 if contact_only else 0.8)
     return bool(ipctk.is_step_collision_free(mesh, V0, V1, broad_phase=ipctk.LBVH(), narrow_phase_ccd=ccd))
@@ -88,6 +65,14 @@ def test_oracle_sees_tool_contact_and_ignores_self_contact():
     folded[:, 2] = -folded[:, 2] + 0.2  # the object through itself, far from the tool
     folded[:, 0] += 0.5
     assert not oracle_intersects(folded, F, T, TF)
+    # self_intersects: the rest shape is clean; pushing the right half through the left half is not.
+    from colgnn_core.collision.exact import self_intersects
+
+    assert not self_intersects(X, F)
+    crushed = X.copy()
+    right = X[:, 0] > np.median(X[:, 0])
+    crushed[right, 0] -= 0.6 * float(np.ptp(X[:, 0]))
+    assert self_intersects(crushed, F) and not oracle_intersects(crushed, F, T, TF)
 
 
 # -- real networks with controlled output -----------------------------------------------------------------------------

@@ -223,3 +223,24 @@ def test_compiled_network_matches_eager(scene, ckpt):
         a, b = eager.step(pose), fast.step(pose)
         assert np.abs(a.positions - b.positions).max() < 1e-5 * scale
     assert fast.model.core_outputs.failure is None
+
+
+def test_stability_report_short_run(ckpt):
+    """colgnn bench --stability on a short run: the report's fields, no object-tool intersection, and a
+    hand-checked rigid shape error (a rotated, shifted rest shape is at rest)."""
+    from colgnn_core.geometry.transforms import quat_to_matrix
+    from colgnn_core.stability import format_stability, rigid_shape_error, stability
+
+    r = stability(str(ckpt), steps=30, settle=5, check_every=5, memory_every=10, threads=1, progress=False)
+    assert r["steps_done"] == 30 + r["leave_and_settle_steps"] and r["leave_and_settle_steps"] >= 6
+    assert r["checked_frames"] >= 7 and r["tool_intersecting_frames"] == 0
+    assert r["rss_mb_start"] > 0 and len(r["rss_mb_samples"]) >= 4
+    assert 0 <= r["rest_rmse_fraction"] <= r["rest_max_fraction"]
+    assert "object-tool intersecting frames 0" in format_stability(r)
+    rest = fx.scene().object.vertices
+    moved = rest @ quat_to_matrix(axis_angle_quat([0.3, 1, 0.2], 0.7)).T + [0.1, -0.2, 0.05]
+    assert rigid_shape_error(moved, rest)[1] < 1e-12
+    dented = rest.copy()
+    dented[0] += [0.0, 0.0, 0.003]
+    rmse, worst = rigid_shape_error(dented, rest)
+    assert 0 < rmse < worst <= 0.003 + 1e-12

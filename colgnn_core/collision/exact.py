@@ -113,6 +113,43 @@ def has_intersections(object_V, object_F, tool_V, tool_F) -> bool:
     return bool(ipctk.has_intersections(mesh, V, broad_phase=ipctk.LBVH()))
 
 
+def object_tool_collision_mesh(object_V, object_F, tool_V, tool_F):
+    """ipctk CollisionMesh of the object *surface* and the tool in which only object–tool pairs can collide.
+
+    Object self-contact and tool self-contact are excluded (link triangles make the object one connected
+    component and the tool another). Returns ``(mesh, V)``, V the stacked [S+M,3] vertices (the object's
+    surface vertices first, in the order of ``np.unique(object_F)``).
+    """
+    ipctk = _ipctk()
+    object_V, object_F = _check_mesh(object_V, object_F, "object")
+    ids = np.unique(object_F)
+    remap = np.full(len(object_V), -1)
+    remap[ids] = np.arange(len(ids))
+    surface_V, surface_F = object_V[ids], remap[object_F]
+    mesh, V = combined_collision_mesh(surface_V, surface_F, tool_V, tool_F)
+    n = len(ids)
+    link = np.stack([np.zeros(n, dtype=np.int64), np.arange(n), np.arange(n)], axis=1)
+    F = np.asfortranarray(np.vstack([surface_F, link, np.asarray(tool_F) + n]).astype(np.int32))
+    mesh.can_collide = ipctk.make_connected_components_filter(F)
+    return mesh, V
+
+
+def tool_intersects(object_V, object_F, tool_V, tool_F) -> bool:
+    """True if the object surface intersects the tool (object self-intersection is not counted)."""
+    ipctk = _ipctk()
+    mesh, V = object_tool_collision_mesh(object_V, object_F, tool_V, tool_F)
+    return bool(ipctk.has_intersections(mesh, V, broad_phase=ipctk.LBVH()))
+
+
+def self_intersects(object_V, object_F) -> bool:
+    """True if the object surface intersects itself (non-adjacent triangles crossing)."""
+    ipctk = _ipctk()
+    object_V, object_F = _check_mesh(object_V, object_F, "object")
+    F = np.asfortranarray(object_F.astype(np.int32))
+    mesh = ipctk.CollisionMesh(np.asfortranarray(object_V), np.asfortranarray(ipctk.edges(F).astype(np.int32)), F)
+    return bool(ipctk.has_intersections(mesh, np.asfortranarray(object_V), broad_phase=ipctk.LBVH()))
+
+
 def is_step_collision_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *,
                            tolerance: float = DEFAULT_TOLERANCE) -> bool:
     """True if the linear motion V0 -> V1 of object and tool has no contact (ipctk Tight-Inclusion).

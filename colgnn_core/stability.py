@@ -1,0 +1,135 @@
+"""``colgnn bench --stability``: a long random-motion rollout through the Predictor, then the tool leaves.
+
+The tool follows the scene's ``random`` scripted motion (smooth random waypoints with tilts, in the training
+family's range) for ``steps`` steps, moves back to its rest pose at the training speed, and holds there for
+``settle`` steps. Reported:
+
+* every published frame finite (else the run stops and says where);
+* object–tool intersecting frames (ipctk, every ``check_every`` frames and every frame with a correction
+  fallback) and object self-intersecting frames (same frames): the first is the product guarantee, the second
+  is shape quality;
+* fallbacks, crossings before the correction;
+* resident memory (VmRSS) every ``memory_every`` steps and its slope after the first quarter (MB per 1,000
+  steps);
+* the shape error after the tool left: RMSE and max vertex distance from the rest shape after the best rigid
+  alignment (Kabsch: a sliding, still undeformed object counts as at rest), as fractions of the bbox
+  diagonal. Target: within 1%.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from colgnn_core.errors import InputError
+
+
+def rss_mb() -> float:
+    """Resident memory of this process (MB), from /proc (NaN where there is none)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def rigid_shape_error(x: np.ndarray, rest: np.ndarray) -> tuple[float, float]:
+    """(RMSE, max distance) in m between ``x`` [N,3] and ``rest`` [N,3] after the best rigid alignment of x."""
+    a, b = x - x.mean(0), rest - rest.mean(0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(u @ vt))
+    r = u @ np.diag([1.0, 1.0, d]) @ vt
+    diff = a @ r - b
+    dist = np.linalg.norm(diff, axis=1)
+    return float(np.sqrt((dist**2).mean())), float(dist.max())
+
+
+def _leave_and_settle(scene, last: np.ndarray, max_translation: float, settle: int) -> np.ndarray:
+    """Poses from ``last`` back to the rest pose in steps of at most ``max_translation``, then ``settle`` holds."""
+    from colgnn_core.geometry.transforms import interpolate_poses
+
+    rest = scene.tool_rest_pose
+    n = max(1, int(np.ceil(np.linalg.norm(rest[:3] - last[:3]) / (0.9 * max_translation))))
+    back = interpolate_poses(last, rest, np.arange(1, n + 1) / n)
+    return np.concatenate([back, np.repeat(rest[None], settle, axis=0)])
+
+
+def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, seed: int = 0,
+              check_every: int = 10, memory_every: int = 250, threads: int = 2, compile: bool = False,
+              progress: bool = True) -> dict:
+    """Run the long rollout (see the module docstring) and return a JSON-ready report."""
+    from colgnn_core.collision.exact import self_intersects, tool_intersects
+    from colgnn_core.predictor import Predictor
+    from colgnn_core.scenes.trajectories import scripted_poses
+
+    if steps < 1 or settle < 1 or check_every < 1 or memory_every < 1:
+        raise InputError("steps, settle, check_every and memory_every must be >= 1")
+    pred = Predictor.from_checkpoint(checkpoint_or_scene, threads=threads, compile=compile)
+    scene = pred.scene
+    poses = scripted_poses(scene, "random", steps + 1, seed=seed)
+    poses = np.concatenate([poses, _leave_and_settle(scene, poses[-1], pred.max_translation, settle)])
+    faces, tool_faces = scene.object.faces, scene.tool.faces
+    pred.reset(tool_pose=poses[0])
+    rest = scene.object.vertices
+    stats = {"tool_intersecting_frames": 0, "self_intersecting_frames": 0, "checked_frames": 0, "fallbacks": 0,
+             "crossings_before": 0, "steps_done": 0}
+    memory: list[tuple[int, float]] = [(0, rss_mb())]
+    step_ms: list[float] = []
+    frames = range(1, len(poses))
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, desc=f"{scene.name} stability", unit="step", mininterval=1.0)
+    t_start = time.perf_counter()
+    for k in frames:
+        r = pred.step(poses[k])
+        if not np.isfinite(r.positions).all():
+            raise InputError(f"the rollout became non-finite at step {k}")
+        step_ms.append(r.timings_ms["total"])
+        stats["steps_done"] = k
+        stats["fallbacks"] += int(r.fallback)
+        stats["crossings_before"] += r.vertex_face_before + r.edge_edge_before
+        if k % check_every == 0 or r.fallback or k == len(poses) - 1:
+            stats["checked_frames"] += 1
+            stats["tool_intersecting_frames"] += tool_intersects(r.positions, faces, r.tool_vertices, tool_faces)
+            stats["self_intersecting_frames"] += self_intersects(r.positions, faces)
+        if k % memory_every == 0:
+            memory.append((k, rss_mb()))
+    diagonal = scene.bbox_diagonal()
+    rmse, worst = rigid_shape_error(pred.positions, rest)
+    ks = np.array([k for k, _ in memory], dtype=np.float64)
+    mb = np.array([m for _, m in memory])
+    late = ks >= 0.25 * ks[-1]
+    slope = float(np.polyfit(ks[late], mb[late], 1)[0] * 1000.0) if late.sum() >= 3 else float("nan")
+    return {
+        "scene": scene.name, "resolution": scene.resolution, "checkpoint": str(checkpoint_or_scene),
+        "random_steps": steps, "leave_and_settle_steps": len(poses) - 1 - steps, "seed": seed,
+        "threads": pred.threads, "compiled": pred.compiled, **stats,
+        "step_ms_median": float(np.median(step_ms)), "step_ms_p95": float(np.percentile(step_ms, 95)),
+        "rss_mb_start": float(mb[0]), "rss_mb_end": float(mb[-1]), "rss_mb_per_1000_steps": slope,
+        "rss_mb_samples": [[int(k), round(float(m), 1)] for k, m in memory],
+        "rest_rmse_fraction": rmse / diagonal, "rest_max_fraction": worst / diagonal,
+        "returned_to_rest_within_1pct": bool(rmse / diagonal <= 0.01),
+        "wall_s": time.perf_counter() - t_start,
+    }
+
+
+def format_stability(r: dict) -> str:
+    """A short readable report of :func:`stability`."""
+    return "\n".join([
+        f"{r['scene']} ({r['resolution']}): {r['random_steps']} random steps + {r['leave_and_settle_steps']} "
+        f"leaving/settling, {r['threads']} threads{', compiled' if r['compiled'] else ''}, {r['wall_s']:.0f} s",
+        f"  step ms median / p95           {r['step_ms_median']:.2f} / {r['step_ms_p95']:.2f}",
+        f"  object-tool intersecting frames {r['tool_intersecting_frames']} of {r['checked_frames']} checked",
+        f"  object self-intersecting frames {r['self_intersecting_frames']} of {r['checked_frames']} checked",
+        f"  fallbacks / crossings before    {r['fallbacks']} / {r['crossings_before']}",
+        f"  memory MB start / end / slope   {r['rss_mb_start']:.1f} / {r['rss_mb_end']:.1f} / "
+        f"{r['rss_mb_per_1000_steps']:+.2f} per 1000 steps",
+        f"  shape after the tool left       RMSE {100 * r['rest_rmse_fraction']:.2f}%, max "
+        f"{100 * r['rest_max_fraction']:.2f}% of the bbox diagonal (rigid-aligned; target <= 1%: "
+        f"{'met' if r['returned_to_rest_within_1pct'] else 'NOT met'})",
+    ])
