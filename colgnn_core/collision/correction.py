@@ -61,12 +61,17 @@ are written; every other entry of the output is the input array's value, bit for
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
+from numba.extending import register_jitable
 
-from colgnn_core.collision.broad_phase import ToolSDFBound
+from colgnn_core.collision.broad_phase import (ToolSDFBound, _box_join, _max_edge_length_kernel, _prim_boxes, _row_dist,
+                                               _sphere_bounds, _vertex_boxes)
+from colgnn_core.collision.filter import _dot, _sub
 from colgnn_core.collision.pipeline import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
@@ -154,6 +159,7 @@ class CollisionCorrector:
         self.n = int(n_vertices)
         self.tool = tool
         self.detector = CollisionDetector(self.faces, tool.faces, self.n, len(tool.vertices), tool)
+        _warm_up_kernels()
         self.surface = self.detector.object_surface
         self.tool_surface = self.detector.tool_surface
         self.surface_ids = self.surface.vertices
@@ -164,6 +170,9 @@ class CollisionCorrector:
         self.margin = max(float(margin_fraction) * float(dhat), MIN_MARGIN)
         self.max_iterations = int(max_iterations)
         self.tool_local = np.asarray(tool.vertices, dtype=np.float64)
+        # The tool lies in this ball about its frame origin: the analytic shapes are extreme at mesh vertices
+        # (rims, corners); the slack covers rounding.
+        self.tool_radius = float(tool.bounding_radius()) * (1 + 1e-6) + self.mesh_margin + 1e-9
         self.fallbacks = 0                           # running count over this corrector's life
         self._extra_v: list = []                     # proximity pushes of the current pass
         self._extra_d: list = []
@@ -201,90 +210,59 @@ class CollisionCorrector:
             p, f, Q = T[pairs[:, 0]], F[pairs[:, 1]], X
         return _point_triangle_distance(p, Q[f[:, 0]], Q[f[:, 1]], Q[f[:, 2]])
 
-    def _project(self, x1: np.ndarray, pose1: np.ndarray, dry: bool = False) -> tuple[int, np.ndarray]:
-        """Push surface vertices with SDF < TRIGGER x margin (+ mesh bound) out to margin along the gradient; in place.
-
-        Returns (number pushed, SDF of the surface vertices before the push)."""
+    def _project(self, x1: np.ndarray, pose1: np.ndarray, sdf: np.ndarray | None = None) -> int:
+        """Push surface vertices with SDF < TRIGGER x margin (+ mesh bound) out to margin along the gradient; in
+        place. ``sdf`` [S]: the surface SDF if known (exact below the trigger). Returns the number pushed."""
         S = self.surface_ids
-        d, g = self.tool.sdf_grad(x1[S], pose1)
-        if dry:
-            return 0, d
-        target = self.margin + self.mesh_margin
-        low = d < TRIGGER * self.margin + self.mesh_margin
-        if low.any():
+        level = TRIGGER * self.margin + self.mesh_margin
+        d = self._surface_sdf(x1, pose1, level) if sdf is None else sdf
+        low = np.flatnonzero(d < level)
+        if len(low):
             idx = S[low]
-            x1[idx] += (target - d[low])[:, None] * g[low]
-        return int(low.sum()), d
+            dl, g = self.tool.sdf_grad(x1[idx], pose1)
+            x1[idx] += (self.margin + self.mesh_margin - dl)[:, None] * g
+        return len(low)
 
     def _proximity(self, x1: np.ndarray, T1: np.ndarray, pose1: np.ndarray, sdf: np.ndarray
                    ) -> tuple[list, list, int]:
         """Pushes for object edges / faces closer than TRIGGER x margin to a tool edge / vertex at t+1.
 
         Vertex-face proximity (object vertex, tool face) is the projection's job (the SDF bounds the
-        distance to the inscribed tool mesh). Returns (vertex id arrays, displacement arrays, pairs)."""
-        from colgnn_core.collision.broad_phase import box_pairs
-
+        distance to the inscribed tool mesh). ``sdf`` [S]: exact below ``self._proximity_reach(x1)``.
+        Returns (vertex id arrays, displacement arrays, pairs)."""
         trig = TRIGGER * self.margin
-        s = np.full(self.n, np.inf)
-        s[self.surface_ids] = sdf
-        F, E = self.surface.faces, self.surface.edges
-        H = self.tool_surface.edges
-        vids, disps, count = [], [], 0
-        # Only primitives with a vertex within (trigger + longest edge) of the tool can be that close.
-        ea, eb = self.surface.edge_cols
-        d = x1[ea] - x1[eb]
-        lmax = float(np.sqrt((d * d).sum(1).max()))
-        close_v = self.surface_ids[sdf < trig + self.mesh_margin + lmax]
-        if len(close_v) == 0:
-            return vids, disps, 0
-        for kind, csr, all_prims in (("ee", self.surface.vertex_edges, E), ("fv", self.surface.vertex_faces, F)):
-            cand = self.surface.incident(csr, close_v)
-            prims = all_prims[cand]
-            P = x1[prims]                                    # [K,k,3]
-            L = np.sqrt(((P - np.roll(P, 1, axis=1)) ** 2).sum(2)).max(axis=1)
-            near = np.flatnonzero(s[prims].min(axis=1) - L < trig + self.mesh_margin)
-            if len(near) == 0:
+        ve, vf = self.surface.vertex_edges, self.surface.vertex_faces
+        ee, ee_d, alpha, fv, fv_d, w3 = _proximity_pairs(
+            x1, np.ascontiguousarray(T1), self.surface_ids, sdf, trig + self.mesh_margin, trig, self.surface.edges,
+            self.surface.faces, ve[0], ve[1], vf[0], vf[1], self.tool_surface.edges)
+        vids, disps = [], []
+        for ids, dist, w in ((self.surface.edges[ee[:, 0]], ee_d, np.stack([1.0 - alpha, alpha], axis=1)),
+                             (self.surface.faces[fv[:, 1]], fv_d, w3)):
+            if len(ids) == 0:
                 continue
-            prims, P = prims[near], P[near]
-            near = np.arange(len(near))
-            lo = P.min(axis=1) - trig
-            hi = P.max(axis=1) + trig
-            if kind == "ee":
-                tlo, thi = np.minimum(T1[H[:, 0]], T1[H[:, 1]]), np.maximum(T1[H[:, 0]], T1[H[:, 1]])
-            else:
-                tlo = thi = T1
-            pr = box_pairs(lo, hi, tlo, thi)
-            if len(pr) == 0:
-                continue
-            ids = prims[near[pr[:, 0]]]
-            if kind == "ee":
-                u, v, k, l = x1[ids[:, 0]], x1[ids[:, 1]], T1[H[pr[:, 1], 0]], T1[H[pr[:, 1], 1]]
-                dist = _segment_distance(u, v, k, l)
-                close = dist < trig
-                if not close.any():
-                    continue
-                u, v, k, l, ids, dist = u[close], v[close], k[close], l[close], ids[close], dist[close]
-                alpha, _ = _segment_params(u, v, k, l)
-                w = np.stack([1.0 - alpha, alpha], axis=1)
-                point = u + alpha[:, None] * (v - u)
-            else:
-                p = T1[pr[:, 1]]
-                a, b, c = x1[ids[:, 0]], x1[ids[:, 1]], x1[ids[:, 2]]
-                dist = _point_triangle_distance(p, a, b, c)
-                close = dist < trig
-                if not close.any():
-                    continue
-                p, a, b, c, ids, dist = p[close], a[close], b[close], c[close], ids[close], dist[close]
-                w = _closest_barycentric(p, a, b, c)
-                point = w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c
-            count += len(ids)
+            point = np.einsum("kj,kjc->kc", w, x1[ids])
             # Push along the tool's outward SDF direction at the object's closest point.
             _, g = self.tool.sdf_grad(point, pose1)
             scale = (self.margin - dist) / (w * w).sum(1)
             for j in range(w.shape[1]):
                 vids.append(ids[:, j])
                 disps.append((scale * w[:, j])[:, None] * g)
-        return vids, disps, count
+        return vids, disps, len(ee) + len(fv)
+
+    def _surface_sdf(self, x: np.ndarray, pose: np.ndarray, below: float) -> np.ndarray:
+        """SDF [S] (m) of the surface vertices at ``pose``: exact where it may be below ``below``, elsewhere
+        a lower bound >= ``below``: the distance to the ball (about the tool-frame origin) holding the tool."""
+        S = self.surface_ids
+        origin = np.asarray(pose, dtype=np.float64)[:3]
+        lb, _ = _sphere_bounds(x, x, S, origin, origin, self.tool_radius)
+        idx = np.flatnonzero(lb < below)
+        if len(idx):
+            lb[idx] = self.tool.sdf(x[S[idx]], pose)
+        return lb
+
+    def _proximity_reach(self, x1: np.ndarray) -> float:
+        """SDF (m) below which a surface vertex may belong to a primitive in proximity range."""
+        return TRIGGER * self.margin + self.mesh_margin + _max_edge_length_kernel(x1, self.surface.edges)
 
     def _pushes(self, hits: dict, x0, x1, T0, T1, iteration: int) -> tuple[np.ndarray, np.ndarray]:
         """Averaged displacement (vertex ids [K], displacements [K,3]) resolving the crossing pairs."""
@@ -394,16 +372,16 @@ class CollisionCorrector:
             n_hits = len(hits["vf"]) + len(hits["fv"]) + len(hits["ee"])
             if it == self.max_iterations:
                 # Out of budget: only check whether the last pass left anything.
-                _, d = self.tool.sdf_grad(x1[self.surface_ids], pose1)
+                d = self._surface_sdf(x1, pose1, self.mesh_margin)
                 clean = n_hits == 0 and not np.any(d < self.mesh_margin)
                 t_resolve += time.perf_counter() - t
                 break
-            _, sdf = self._project(x1, pose1, dry=True)
+            sdf = self._surface_sdf(x1, pose1, self._proximity_reach(x1))
             self._extra_v, self._extra_d, n_close = self._proximity(x1, T1, pose1, sdf)
             vid, disp = self._pushes(hits, x0, x1, T0, T1, it)
             if len(vid):
                 x1[vid] += disp
-            pushed, _ = self._project(x1, pose1)
+            pushed = self._project(x1, pose1, None if len(vid) or n_close else sdf)
             t_resolve += time.perf_counter() - t
             if n_hits == 0 and pushed == 0 and n_close == 0:
                 clean = True
@@ -420,8 +398,7 @@ class CollisionCorrector:
             out.vertex_face_after = int(res.vf.hit.sum() + res.fv.hit.sum())
             out.edge_edge_after = int(res.ee.hit.sum())
             out.timings_ms["fallback"] = 1e3 * (time.perf_counter() - t)
-        d = self.tool.sdf(x1[self.surface_ids], pose1)
-        out.penetrating_after = int(np.sum(d < 0))
+        out.penetrating_after = int(np.sum(self._surface_sdf(x1, pose1, 0.0) < 0))
         out.moved = int(np.sum(np.any(x1 != raw, axis=1)))
         out.timings_ms["total"] = 1e3 * (time.perf_counter() - t_start)
         return out
@@ -449,89 +426,270 @@ class CollisionCorrector:
         return int(in_region.sum())
 
 
-def _barycentric_clamped(p, a, b, c) -> np.ndarray:
-    """Barycentric weights [K,3] of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
-    e0, e1, e2 = b - a, c - a, p - a
-    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
-    d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
+@register_jitable
+def _pt(X, i):
+    return X[i, 0], X[i, 1], X[i, 2]
+
+
+@register_jitable
+def _lerp(a, b, t):
+    return a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])
+
+
+@register_jitable
+def _clip01(x):
+    return min(max(x, 0.0), 1.0)
+
+
+@register_jitable
+def _seg_params(u, v, k, l):
+    """(alpha on u-v, beta on k-l) in [0,1] of (approximately) closest points of two segments."""
+    d1, d2, r = _sub(v, u), _sub(l, k), _sub(u, k)
+    a, e, f = _dot(d1, d1), _dot(d2, d2), _dot(d2, r)
+    b, c = _dot(d1, d2), _dot(d1, r)
+    den = a * e - b * b
+    s = (b * f - c * e) / den if den > 1e-300 else 0.5
+    s = 0.5 if math.isnan(s) else _clip01(s)
+    t = (b * s + f) / e if e > 1e-300 else 0.5
+    t = 0.5 if math.isnan(t) else _clip01(t)
+    s = (b * t - c) / a if a > 1e-300 else 0.5
+    s = 0.5 if math.isnan(s) else _clip01(s)
+    return s, t
+
+
+@register_jitable
+def _pt_seg_dist(p, a, b):
+    ab = _sub(b, a)
+    t = _clip01(_dot(_sub(p, a), ab) / max(_dot(ab, ab), 1e-300))
+    d = _sub(p, _lerp(a, b, t))
+    return math.sqrt(_dot(d, d))
+
+
+@register_jitable
+def _seg_dist(u, v, k, l):
+    """(distance, alpha) of two segments: closest points, with the end-point distances as a safeguard."""
+    alpha, beta = _seg_params(u, v, k, l)
+    d = _sub(_lerp(u, v, alpha), _lerp(k, l, beta))
+    dist = min(math.sqrt(_dot(d, d)), _pt_seg_dist(u, k, l), _pt_seg_dist(v, k, l), _pt_seg_dist(k, u, v),
+               _pt_seg_dist(l, u, v))
+    return dist, alpha
+
+
+@register_jitable
+def _pt_tri(p, a, b, c):
+    """(distance, w0, w1, w2): exact point-triangle distance and the barycentric weights of the closest
+    point (candidates: the clamped projection and the nearest point of each edge; the nearest wins)."""
+    e0, e1 = _sub(b, a), _sub(c, a)
+    n = (e0[1] * e1[2] - e0[2] * e1[1], e0[2] * e1[0] - e0[0] * e1[2], e0[0] * e1[1] - e0[1] * e1[0])
+    nn = math.sqrt(_dot(n, n))
+    dist = min(_pt_seg_dist(p, a, b), _pt_seg_dist(p, b, c), _pt_seg_dist(p, c, a))
+    if nn > 0:
+        inside = True
+        for x, y in ((a, b), (b, c), (c, a)):
+            xy, xp = _sub(y, x), _sub(p, x)
+            cr = (xy[1] * xp[2] - xy[2] * xp[1], xy[2] * xp[0] - xy[0] * xp[2], xy[0] * xp[1] - xy[1] * xp[0])
+            inside = inside and _dot(cr, n) >= 0
+        if inside:
+            dist = min(dist, abs(_dot(_sub(p, a), n)) / nn)
+    # weights of the closest point
+    w = _bary_clamped(p, a, b, c)
+    q = (w[0] * a[0] + w[1] * b[0] + w[2] * c[0], w[0] * a[1] + w[1] * b[1] + w[2] * c[1],
+         w[0] * a[2] + w[1] * b[2] + w[2] * c[2])
+    best = _dot(_sub(p, q), _sub(p, q))
+    for i in range(3):
+        x, y = (a, b, c)[i], (a, b, c)[(i + 1) % 3]
+        xy = _sub(y, x)
+        t = _clip01(_dot(_sub(p, x), xy) / max(_dot(xy, xy), 1e-300))
+        d = _sub(p, _lerp(x, y, t))
+        dd = _dot(d, d)
+        if dd < best:
+            best = dd
+            ww = [0.0, 0.0, 0.0]
+            ww[i] = 1.0 - t
+            ww[(i + 1) % 3] = t
+            w = (ww[0], ww[1], ww[2])
+    return dist, w[0], w[1], w[2]
+
+
+@register_jitable
+def _bary_clamped(p, a, b, c):
+    """Barycentric weights of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
+    e0, e1, e2 = _sub(b, a), _sub(c, a), _sub(p, a)
+    d00, d01, d11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)
+    d20, d21 = _dot(e2, e0), _dot(e2, e1)
     den = d00 * d11 - d01 * d01
-    with np.errstate(invalid="ignore", divide="ignore"):
-        v = (d11 * d20 - d01 * d21) / den
-        w = (d00 * d21 - d01 * d20) / den
-    bad = ~np.isfinite(v) | ~np.isfinite(w)
-    v, w = np.where(bad, 1 / 3, v), np.where(bad, 1 / 3, w)
-    bw = np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, None)
-    s = bw.sum(1, keepdims=True)
-    return np.where(s > 0, bw / np.maximum(s, 1e-300), 1 / 3)
+    v = (d11 * d20 - d01 * d21) / den if den != 0 else np.nan
+    w = (d00 * d21 - d01 * d20) / den if den != 0 else np.nan
+    if not (math.isfinite(v) and math.isfinite(w)):
+        v = w = 1.0 / 3.0
+    b0, b1, b2 = max(1.0 - v - w, 0.0), max(v, 0.0), max(w, 0.0)
+    s = b0 + b1 + b2
+    if not s > 0:
+        return 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0
+    return b0 / s, b1 / s, b2 / s
+
+
+@njit(cache=True)
+def _segment_params_kernel(u, v, k, l):
+    K = u.shape[0]
+    alpha, beta = np.empty(K), np.empty(K)
+    for i in range(K):
+        alpha[i], beta[i] = _seg_params(_pt(u, i), _pt(v, i), _pt(k, i), _pt(l, i))
+    return alpha, beta
+
+
+@njit(cache=True)
+def _segment_distance_kernel(u, v, k, l):
+    out = np.empty(u.shape[0])
+    for i in range(u.shape[0]):
+        out[i] = _seg_dist(_pt(u, i), _pt(v, i), _pt(k, i), _pt(l, i))[0]
+    return out
+
+
+@njit(cache=True)
+def _point_triangle_kernel(p, a, b, c):
+    dist = np.empty(p.shape[0])
+    w = np.empty((p.shape[0], 3))
+    for i in range(p.shape[0]):
+        dist[i], w[i, 0], w[i, 1], w[i, 2] = _pt_tri(_pt(p, i), _pt(a, i), _pt(b, i), _pt(c, i))
+    return dist, w
+
+
+@njit(cache=True)
+def _barycentric_clamped_kernel(p, a, b, c):
+    w = np.empty((p.shape[0], 3))
+    for i in range(p.shape[0]):
+        w[i, 0], w[i, 1], w[i, 2] = _bary_clamped(_pt(p, i), _pt(a, i), _pt(b, i), _pt(c, i))
+    return w
+
+
+def _rows(*arrays):
+    return tuple(np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3) for x in arrays)
 
 
 def _segment_params(u, v, k, l) -> tuple[np.ndarray, np.ndarray]:
     """Parameters (alpha on u-v, beta on k-l), each [K] in [0,1], of (approximately) closest points."""
-    d1, d2, r = v - u, l - k, u - k
-    a, e, f = (d1 * d1).sum(1), (d2 * d2).sum(1), (d2 * r).sum(1)
-    b, c = (d1 * d2).sum(1), (d1 * r).sum(1)
-    den = a * e - b * b
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s = np.where(den > 1e-300, (b * f - c * e) / den, 0.5)
-    s = np.clip(np.nan_to_num(s, nan=0.5), 0.0, 1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(e > 1e-300, (b * s + f) / e, 0.5)
-    t = np.clip(np.nan_to_num(t, nan=0.5), 0.0, 1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s = np.where(a > 1e-300, (b * t - c) / a, 0.5)
-    return np.clip(np.nan_to_num(s, nan=0.5), 0.0, 1.0), t
-
-
-def _point_segment_distance(p, a, b) -> np.ndarray:
-    ab = b - a
-    t = np.clip(((p - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-300), 0.0, 1.0)
-    d = p - (a + t[:, None] * ab)
-    return np.sqrt((d * d).sum(1))
-
-
-def _point_triangle_distance(p, a, b, c) -> np.ndarray:
-    """Exact point-triangle distances [K]: plane distance when the projection is inside, else the nearest edge."""
-    n = np.cross(b - a, c - a)
-    nn = np.sqrt((n * n).sum(1))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        plane = np.abs(((p - a) * n).sum(1)) / nn
-        inside = ((np.cross(b - a, p - a) * n).sum(1) >= 0) & ((np.cross(c - b, p - b) * n).sum(1) >= 0) \
-            & ((np.cross(a - c, p - c) * n).sum(1) >= 0) & (nn > 0)
-    edges = np.minimum(np.minimum(_point_segment_distance(p, a, b), _point_segment_distance(p, b, c)),
-                       _point_segment_distance(p, c, a))
-    return np.where(inside, np.minimum(plane, edges), edges)
+    return _segment_params_kernel(*_rows(u, v, k, l))
 
 
 def _segment_distance(u, v, k, l) -> np.ndarray:
     """Segment-segment distances [K] (closest points, with the end-point distances as a safeguard)."""
-    a, b = _segment_params(u, v, k, l)
-    d = (u + a[:, None] * (v - u)) - (k + b[:, None] * (l - k))
-    dist = np.sqrt((d * d).sum(1))
-    ends = np.minimum(np.minimum(_point_segment_distance(u, k, l), _point_segment_distance(v, k, l)),
-                      np.minimum(_point_segment_distance(k, u, v), _point_segment_distance(l, u, v)))
-    return np.minimum(dist, ends)
+    return _segment_distance_kernel(*_rows(u, v, k, l))
+
+
+def _point_triangle_distance(p, a, b, c) -> np.ndarray:
+    """Exact point-triangle distances [K]: plane distance when the projection is inside, else the nearest edge."""
+    return _point_triangle_kernel(*_rows(p, a, b, c))[0]
 
 
 def _closest_barycentric(p, a, b, c) -> np.ndarray:
-    """Barycentric weights [K,3] of the point of triangle (a,b,c) closest to p (exact, Ericson's regions)."""
-    K = len(p)
-    out = np.empty((K, 3))
-    # Candidates: the (clamped) projection and the nearest point of each edge; the nearest one wins.
-    cands, dists = [], []
-    w_in = _barycentric_clamped(p, a, b, c)
-    q = w_in[:, :1] * a + w_in[:, 1:2] * b + w_in[:, 2:] * c
-    cands.append(w_in)
-    dists.append(((p - q) ** 2).sum(1))
-    for i, j, (x, y) in ((0, 1, (a, b)), (1, 2, (b, c)), (2, 0, (c, a))):
-        xy = y - x
-        t = np.clip(((p - x) * xy).sum(1) / np.maximum((xy * xy).sum(1), 1e-300), 0.0, 1.0)
-        w = np.zeros((K, 3))
-        w[:, i] = 1.0 - t
-        w[:, j] = t
-        cands.append(w)
-        dists.append(((p - (x + t[:, None] * xy)) ** 2).sum(1))
-    best = np.argmin(np.stack(dists, axis=1), axis=1)
-    for k in range(4):
-        m = best == k
-        out[m] = cands[k][m]
-    return out
+    """Barycentric weights [K,3] of the point of triangle (a,b,c) closest to p."""
+    return _point_triangle_kernel(*_rows(p, a, b, c))[1]
+
+
+def _barycentric_clamped(p, a, b, c) -> np.ndarray:
+    """Barycentric weights [K,3] of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
+    return _barycentric_clamped_kernel(*_rows(p, a, b, c))
+
+
+@njit(cache=True)
+def _proximity_pairs(x1, T1, S, sdf, level, trig, edges, faces, ve_off, ve_ids, vf_off, vf_ids, tool_edges):
+    """Object edges / faces within ``trig`` (m) of a tool edge / vertex at t+1.
+
+    Candidates: primitives around surface vertices with SDF < ``level`` + the longest surface edge
+    whose bound (min vertex SDF - their longest edge) is below ``level`` (= trig + the tool mesh's
+    tessellation bound); then a box join (boxes grown by ``trig``) and exact distances. Returns (ee [K,2] (object edge, tool edge), ee_dist,
+    ee_alpha, fv [J,2] (tool vertex, object face), fv_dist, fv_w [J,3]).
+    """
+    n = x1.shape[0]
+    s = np.full(n, np.inf)
+    for i in range(len(S)):
+        s[S[i]] = sdf[i]
+    lmax = 0.0
+    for e in range(edges.shape[0]):
+        lmax = max(lmax, _row_dist(x1, edges[e, 0], x1, edges[e, 1]))
+    reach = level + lmax
+    seen_e = np.zeros(edges.shape[0], dtype=np.bool_)
+    seen_f = np.zeros(faces.shape[0], dtype=np.bool_)
+    cand_e = np.empty(edges.shape[0], dtype=np.int64)
+    cand_f = np.empty(faces.shape[0], dtype=np.int64)
+    ne = nf = 0
+    for i in range(len(S)):
+        v = S[i]
+        if not sdf[i] < reach:
+            continue
+        for q in range(ve_off[v], ve_off[v + 1]):
+            e = ve_ids[q]
+            if not seen_e[e]:
+                seen_e[e] = True
+                a, b = edges[e, 0], edges[e, 1]
+                if min(s[a], s[b]) - _row_dist(x1, a, x1, b) < level:
+                    cand_e[ne] = e
+                    ne += 1
+        for q in range(vf_off[v], vf_off[v + 1]):
+            f = vf_ids[q]
+            if not seen_f[f]:
+                seen_f[f] = True
+                a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+                L = max(_row_dist(x1, a, x1, b), _row_dist(x1, b, x1, c), _row_dist(x1, c, x1, a))
+                if min(s[a], s[b], s[c]) - L < level:
+                    cand_f[nf] = f
+                    nf += 1
+    cand_e, cand_f = cand_e[:ne], cand_f[:nf]
+    elo, ehi = _prim_boxes(x1, x1, edges, cand_e)
+    flo, fhi = _prim_boxes(x1, x1, faces, cand_f)
+    elo -= trig
+    ehi += trig
+    flo -= trig
+    fhi += trig
+    all_tool = np.arange(T1.shape[0])
+    tvlo, tvhi = _vertex_boxes(T1, T1, all_tool)
+    hsel = np.arange(tool_edges.shape[0])
+    hlo, hhi = _prim_boxes(T1, T1, tool_edges, hsel)
+    pe = _box_join(elo, ehi, hlo, hhi)
+    ee = np.empty((pe.shape[0], 2), dtype=np.int64)
+    ee_dist, ee_alpha = np.empty(pe.shape[0]), np.empty(pe.shape[0])
+    k = 0
+    for r in range(pe.shape[0]):
+        e, h = cand_e[pe[r, 0]], pe[r, 1]
+        d, alpha = _seg_dist(_pt(x1, edges[e, 0]), _pt(x1, edges[e, 1]), _pt(T1, tool_edges[h, 0]),
+                             _pt(T1, tool_edges[h, 1]))
+        if d < trig:
+            ee[k, 0], ee[k, 1], ee_dist[k], ee_alpha[k] = e, h, d, alpha
+            k += 1
+    pf = _box_join(tvlo, tvhi, flo, fhi)
+    fv = np.empty((pf.shape[0], 2), dtype=np.int64)
+    fv_dist, fv_w = np.empty(pf.shape[0]), np.empty((pf.shape[0], 3))
+    j = 0
+    for r in range(pf.shape[0]):
+        t, f = pf[r, 0], cand_f[pf[r, 1]]
+        d, w0, w1, w2 = _pt_tri(_pt(T1, t), _pt(x1, faces[f, 0]), _pt(x1, faces[f, 1]), _pt(x1, faces[f, 2]))
+        if d < trig:
+            fv[j, 0], fv[j, 1], fv_dist[j] = t, f, d
+            fv_w[j, 0], fv_w[j, 1], fv_w[j, 2] = w0, w1, w2
+            j += 1
+    return ee[:k], ee_dist[:k], ee_alpha[:k], fv[:j], fv_dist[:j], fv_w[:j]
+
+
+_KERNELS_READY = False
+
+
+def _warm_up_kernels() -> None:
+    """Load (the first time on a machine: compile) the correction's numba kernels on a tiny case, so that
+    the first real step is not the slow one."""
+    global _KERNELS_READY
+    if _KERNELS_READY:
+        return
+    from colgnn_core.collision.broad_phase import Surface
+
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    surf = Surface.from_faces(np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]]), 4)
+    tool = x + [0.2, 0.2, 0.2]
+    ve, vf = surf.vertex_edges, surf.vertex_faces
+    _proximity_pairs(x, tool, surf.vertices, np.zeros(4), 1.0, 1.0, surf.edges, surf.faces, ve[0], ve[1], vf[0],
+                     vf[1], surf.edges)
+    _segment_params(x, tool, x, tool)
+    _segment_distance(x, tool, x, tool)
+    _point_triangle_distance(x, x, tool, tool + 1)
+    _barycentric_clamped(x, x, tool, tool + 1)
+    _KERNELS_READY = True
