@@ -335,3 +335,35 @@ def test_random_motion_with_tilts_2000_steps(name):
     # clearance (min(0.2 d0, 1e-4 m)) mid-step without touching (cone_bunny: 3 of 1999 when measured).
     assert stats["intersecting"] == 0 and stats["contact"] == 0, stats
     assert stats["crossing"] <= 0.005 * stats["steps"], stats
+
+
+# -- the shipped full-resolution model on the hard cases ------------------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def _shipped(name: str):
+    from colgnn_core.predictor import Predictor
+
+    return Predictor.from_checkpoint(name, threads=1)
+
+
+def _hard_cases(scene) -> dict[str, np.ndarray]:
+    from colgnn_core.scenes.trajectories import scripted_poses
+
+    graze = scripted_poses(scene, "drag", 40)
+    graze[:, 2] += float(scene.family["depth"][0]) - 0.3 * scene.dhat  # the tool just touches the surface
+    jitter = scripted_poses(scene, "press", 40)
+    rng = np.random.default_rng(3)
+    jitter[1:, :3] += rng.uniform(-1.5e-3, 1.5e-3, size=(len(jitter) - 1, 3))
+    jitter[:, :3] = np.clip(jitter[:, :3], scene.workspace_min, scene.workspace_max)
+    return {"test sequence": _family_poses(scene, 41, seed=0), "3x faster": _family_poses(scene, 120)[::3],
+            "grazing": graze, "jitter": jitter, "leave and re-enter": scripted_poses(scene, "stab", 40)}
+
+
+@pytest.mark.parametrize("case", ["test sequence", "3x faster", "grazing", "jitter", "leave and re-enter"])
+def test_shipped_full_resolution_model_never_penetrates(case):
+    """The trained cone_bunny model (full resolution): zero intersecting frames and zero contact steps by
+    ipctk, on a held-out family trajectory and the hard cases."""
+    pred = _shipped("cone_bunny")
+    assert pred.scene.resolution == "full"
+    stats = run_checked(pred, _hard_cases(pred.scene)[case])
+    assert stats["intersecting"] == 0 and stats["contact"] == 0, stats
+    print(case, stats)
