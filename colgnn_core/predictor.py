@@ -41,6 +41,7 @@ __all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS"
 DEFAULT_MAX_SUBSTEPS = 16
 EASE_PEAK = 1.5            # trajectories.py eases every move with a smoothstep: peak speed 1.5x the mean
 MIN_ROTATION_STEP = math.radians(2.0)  # floor of the per-step rotation limit (families without tilt)
+TRIM_EVERY = 200           # model steps between returns of freed heap memory to the OS (see _release_memory)
 COUNT_LABELS = ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
                 "penetrating_vertices_after", "correction_iterations", "fallback", "substeps")
 
@@ -114,6 +115,27 @@ def tool_step_limits(scene, extra: dict | None = None) -> tuple[float, float]:
     return _family_limits(scene.name, scene.resolution)
 
 
+@lru_cache(maxsize=1)
+def _libc_malloc_trim():
+    """glibc's malloc_trim, or None (another C library)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def _release_memory() -> None:
+    """Hand freed heap pages back to the OS. The correction's arrays change size every step; glibc then keeps
+    fragmented free memory and a long-running process's RSS creeps up (several MB per 1,000 full-resolution
+    cone_bunny steps measured); a periodic malloc_trim keeps it flat (~1 ms, every TRIM_EVERY steps)."""
+    trim = _libc_malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
 def _rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
     return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(q0, q1))))))
 
@@ -169,6 +191,7 @@ class Predictor:
                                              max_iterations=max_iterations) if self.correction else None)
         self.steps = 0          # model steps since reset
         self.fallbacks = 0      # steps whose correction used the fallback since reset
+        self._since_trim = 0
         self.reset()
         self.compiled = bool(compile) and hasattr(self.model, "compile_network")
         if self.compiled:
@@ -316,6 +339,10 @@ class Predictor:
         net.commit(x_next, tool_next, pose_next)
         self._tool_np = tool_next_np
         self.steps += 1
+        self._since_trim += 1
+        if self._since_trim >= TRIM_EVERY:
+            self._since_trim = 0
+            _release_memory()
 
     # -- the rollout loop's stepper interface ---------------------------------------------------------------------
     def stepper(self) -> "PredictorStepper":
