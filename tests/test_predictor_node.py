@@ -157,6 +157,29 @@ def test_steps_publish_markers_counts_and_diagnostics(node, ros, checkpoint, pos
     assert values["rejected_total"] == "0" and values["poses_received"] == str(k)
 
 
+def test_step_on_arrival_judges_early_poses_by_their_stamps(ros, checkpoint, poses):
+    """A pose is stepped on arrival when its stamp is >= 0.75 dt after the last stepped pose's, whatever the
+    node's wall clock says (a wall-clock rule can phase-lock with the publisher and add up to dt of latency)."""
+    ctx, _, _ = ros
+    n = PredictorNode(context=ctx, parameter_overrides=overrides(checkpoint), namespace=f"/t{uuid.uuid4().hex[:8]}")
+    try:
+        dt_ns = int(round(n.dt * 1e9))
+        t0 = n.get_clock().now().nanoseconds
+        n._on_pose(pose_msg(poses[1], t0))
+        n._on_arrival()
+        assert n.stats["steps"] == 1
+        n._on_pose(pose_msg(poses[2], t0 + dt_ns // 2))
+        n._on_arrival()
+        assert n.stats["steps"] == 1 and n._pending is not None  # early in pose time: the timer takes it
+        n._tick()
+        assert n.stats["steps"] == 2 and n._pending is None
+        n._on_pose(pose_msg(poses[3], t0 + dt_ns // 2 + dt_ns))  # arrives at once in wall time, a dt later in pose time
+        n._on_arrival()
+        assert n.stats["steps"] == 3
+    finally:
+        n.destroy_node()
+
+
 def test_each_kind_of_bad_input_is_rejected_and_the_state_kept(ros, checkpoint, poses, caplog):
     ctx, _, _ = ros
     n = PredictorNode(context=ctx, parameter_overrides=overrides(checkpoint, max_substeps=2))
