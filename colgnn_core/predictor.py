@@ -217,16 +217,23 @@ class Predictor:
 
     @classmethod
     def from_checkpoint(cls, checkpoint_or_scene, *, scene=None, correction: bool = True,
-                        max_substeps: int = DEFAULT_MAX_SUBSTEPS, threads: int | None = 2, **kwargs) -> "Predictor":
-        # kwargs: the remaining keyword arguments of Predictor (e.g. compile=True).
-        """A Predictor from a checkpoint path, a LoadedCheckpoint, or a scene name (its shipped model)."""
-        from colgnn_core.rollout import load_model
+                        max_substeps: int = DEFAULT_MAX_SUBSTEPS, threads: int | None = 2, limits: str = "none",
+                        **kwargs) -> "Predictor":
+        """A Predictor from a checkpoint path, a LoadedCheckpoint, or a scene name (its shipped model).
+
+        ``limits='data'`` caps the network output by the training data's extremes
+        (:func:`colgnn_core.rollout.output_limits`) unless ``max_displacement`` / ``max_deviation`` are given;
+        other keyword arguments go to :class:`Predictor` (e.g. ``compile=True``).
+        """
+        from colgnn_core.rollout import load_model, output_limits
 
         loaded = load_model(checkpoint_or_scene, scene)
         if scene is None:
             from colgnn_core.scenes import load_scene
 
             scene = load_scene(loaded.meta.scene, loaded.meta.resolution)
+        kwargs["max_displacement"], kwargs["max_deviation"] = output_limits(
+            loaded, limits, kwargs.get("max_displacement"), kwargs.get("max_deviation"))
         return cls(loaded, scene, correction=correction, max_substeps=max_substeps, threads=threads, **kwargs)
 
     # -- state ----------------------------------------------------------------------------------------------------

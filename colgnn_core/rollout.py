@@ -58,6 +58,27 @@ def shipped_checkpoint(scene_name: str) -> Path:
     return path
 
 
+def output_limits(loaded: LoadedCheckpoint, limits: str, max_displacement: float | None = None,
+                  max_deviation: float | None = None) -> tuple[float | None, float | None]:
+    """(max displacement per step, max distance from rest) caps in m for the network's output.
+
+    ``limits``: 'none' (only the explicit values) or 'data': ``DATA_STEP_FACTOR`` x the largest per-frame node
+    displacement and ``DATA_DEVIATION_FACTOR`` x the largest node distance from rest in the checkpoint's training
+    data, where no explicit value is given.
+    """
+    if limits not in ("none", "data"):
+        raise InputError(f"limits must be 'none' or 'data', got {limits!r}")
+    if limits == "data":
+        stats = (loaded.extra or {}).get("data_stats")
+        if not stats:
+            raise InputError("this checkpoint records no training-data statistics; pass explicit limits")
+        if max_displacement is None:
+            max_displacement = DATA_STEP_FACTOR * float(stats["max"])
+        if max_deviation is None:
+            max_deviation = DATA_DEVIATION_FACTOR * float(stats["max_deviation"])
+    return max_displacement, max_deviation
+
+
 def load_model(checkpoint_or_scene, scene=None) -> LoadedCheckpoint:
     """A loaded checkpoint from a LoadedCheckpoint, a checkpoint path, or a scene name (its shipped model)."""
     if isinstance(checkpoint_or_scene, LoadedCheckpoint):
@@ -177,16 +198,7 @@ def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *,
     poses = scene.check_poses(np.asarray(poses, dtype=np.float64))
     if poses is None or len(poses) < 1:
         raise InputError("poses must have at least one row (frame 0)")
-    if limits not in ("none", "data"):
-        raise InputError(f"limits must be 'none' or 'data', got {limits!r}")
-    if limits == "data":
-        stats = (loaded.extra or {}).get("data_stats")
-        if not stats:
-            raise InputError("this checkpoint records no training-data statistics; pass explicit limits")
-        if max_displacement is None:
-            max_displacement = DATA_STEP_FACTOR * float(stats["max"])
-        if max_deviation is None:
-            max_deviation = DATA_DEVIATION_FACTOR * float(stats["max_deviation"])
+    max_displacement, max_deviation = output_limits(loaded, limits, max_displacement, max_deviation)
     if correction:
         from colgnn_core.predictor import Predictor
 

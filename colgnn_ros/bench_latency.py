@@ -54,6 +54,7 @@ def tree_rss_mb(pid: int) -> float:
 
 def run(args: argparse.Namespace) -> dict:
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
@@ -104,6 +105,14 @@ def run(args: argparse.Namespace) -> dict:
         def on_pose(msg: PoseStamped) -> None:
             sent.append((stamp_to_ns(msg.header.stamp), clock.now().nanoseconds))
         node.create_subscription(Marker, "deformed_mesh", on_mesh, OUTPUT_QOS, raw=True)
+        diag: dict = {}
+
+        def on_diag(msg: DiagnosticArray) -> None:
+            for st in msg.status:
+                if st.name.startswith("predictor"):
+                    diag.clear()
+                    diag.update({kv.key: kv.value for kv in st.values})
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, OUTPUT_QOS)
         node.create_subscription(PoseStamped, "tool_pose", on_pose,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
         executor = SingleThreadedExecutor(context=ctx)
@@ -161,6 +170,7 @@ def run(args: argparse.Namespace) -> dict:
         "rss_mb_end": float(mb[-1]) if len(mb) else float("nan"),
         "rss_mb_per_min": slope, "node_exit_code": code,
         "rss_mb_every_10s": [round(float(y), 1) for x, y in rss[::10]],
+        "node_diagnostics": dict(diag),  # the node's last /diagnostics: step ms, superseded and rejected poses
     }
 
 

@@ -77,6 +77,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "last stepped pose's (false: only the dt timer steps, adding up to dt of latency)"),
     ParamSpec("threads", 1, "torch intra-op threads (1: steadiest step times when the CPU is shared; more only "
               "helps large models on idle cores)", range=(1, 256)),
+    ParamSpec("limits", "data", "cap the network output by its training data's extremes ('data': 2x the largest "
+              "per-step motion, 1.5x the largest distance from rest; bounds a long run's drift) or not ('none')",
+              choices=("data", "none")),
     ParamSpec("compile", False, "torch.compile the network at start-up (10-30 s, cached on disk by torch): ~1.8x "
               "faster GNN step, worth it for full-resolution models; falls back to eager with a warning"),
 )
@@ -151,7 +154,7 @@ class PredictorNode(Node):
         path = p["checkpoint"] or str(shipped_checkpoint(p["scene"]))
         self.checkpoint_name = path
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
-                                         threads=p["threads"], compile=p["compile"])
+                                         threads=p["threads"], compile=p["compile"], limits=p["limits"])
         if pred.scene.name != p["scene"]:
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "
                              f"(set scene:={pred.scene.name})")

@@ -244,3 +244,18 @@ def test_stability_report_short_run(ckpt):
     dented[0] += [0.0, 0.0, 0.003]
     rmse, worst = rigid_shape_error(dented, rest)
     assert 0 < rmse < worst <= 0.003 + 1e-12
+
+
+def test_from_checkpoint_data_limits(ckpt):
+    """limits='data': the caps come from the checkpoint's training-data statistics; explicit values win."""
+    from colgnn_core.rollout import DATA_DEVIATION_FACTOR, DATA_STEP_FACTOR, load_model
+
+    stats = load_model(str(ckpt)).extra["data_stats"]
+    p = Predictor.from_checkpoint(ckpt, threads=1, limits="data")
+    assert p._net.max_displacement == pytest.approx(DATA_STEP_FACTOR * stats["max"])
+    assert p._net.max_deviation == pytest.approx(DATA_DEVIATION_FACTOR * stats["max_deviation"])
+    p = Predictor.from_checkpoint(ckpt, threads=1, limits="data", max_deviation=0.5)
+    assert p._net.max_deviation == 0.5
+    assert Predictor.from_checkpoint(ckpt, threads=1)._net.max_deviation is None
+    with pytest.raises(InputError, match="limits must be"):
+        Predictor.from_checkpoint(ckpt, threads=1, limits="tight")

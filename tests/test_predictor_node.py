@@ -70,7 +70,7 @@ def pose_msg(pose, stamp_ns: int, frame_id: str = "world") -> PoseStamped:
 
 
 def local_predictor(checkpoint: str) -> Predictor:
-    return Predictor.from_checkpoint(checkpoint, threads=1)
+    return Predictor.from_checkpoint(checkpoint, threads=1, limits="data")  # the node's default limits
 
 
 def expected_corners(res) -> tuple[np.ndarray, np.ndarray]:
