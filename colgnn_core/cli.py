@@ -112,7 +112,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from colgnn_core.stability import format_stability, stability
 
         result = stability(args.checkpoint or args.scene, steps=args.steps, seed=args.seed, threads=args.threads,
-                           compile=args.compile, progress=not args.json)
+                           compile=args.compile, limits=args.limits, progress=not args.json)
         if result["scene"] != args.scene:
             raise InputError(f"checkpoint is for scene {result['scene']!r}, not {args.scene!r}")
         print(json.dumps(result, indent=2) if args.json else format_stability(result))
@@ -275,6 +275,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
                         "return to rest")
     p.add_argument("--steps", type=_positive, default=10_000, help="with --stability: random-motion steps")
     p.add_argument("--seed", type=int, default=0, help="with --stability: seed of the random motion")
+    p.add_argument("--limits", choices=("none", "data"), default="none",
+                   help="with --stability: cap the network output by the training data's extremes")
     p.add_argument("--json", action="store_true")
     handlers["bench"] = cmd_bench
 
