@@ -198,12 +198,18 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         "per_sequence": per_sequence,
         "wall_s": time.perf_counter() - t_start,
     }
-    files_out = {"json": out / "metrics.json", "markdown": out / "metrics.md", "plot": out / "rmse_over_time.png"}
-    result["files"] = {k: str(v) for k, v in files_out.items()}
-    with atomic_write(files_out["markdown"], "w") as fh:
-        fh.write(format_markdown(result))
-    plot_rmse(result, files_out["plot"])
-    with atomic_write(files_out["json"], "w") as fh:
+    return write_report(result, out, "metrics", "rmse_over_time.png", format_markdown, plot_rmse)
+
+
+def write_report(result: dict, out: Path, stem: str, plot_name: str, markdown, plot) -> dict:
+    """Write ``<stem>.md``, the plot and ``<stem>.json`` (last, atomically each) into ``out``; adds
+    ``result['files']`` and returns ``result``."""
+    files = {"json": out / f"{stem}.json", "markdown": out / f"{stem}.md", "plot": out / plot_name}
+    result["files"] = {k: str(v) for k, v in files.items()}
+    with atomic_write(files["markdown"], "w") as fh:
+        fh.write(markdown(result))
+    plot(result, files["plot"])
+    with atomic_write(files["json"], "w") as fh:
         json.dump(result, fh, indent=1)
     return result
 

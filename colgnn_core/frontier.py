@@ -16,7 +16,6 @@ summed over the steps, ipctk oracle) and intersecting frames. Outputs in ``out_d
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -69,7 +68,7 @@ def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier
         ipc: include the solver points (re-simulated: the slow part at full resolution).
         exact: crossings with ipctk's exact CCD (False: the project's narrow phase).
     """
-    from colgnn_core.evaluate import _test_files
+    from colgnn_core.evaluate import _test_files, write_report
     from colgnn_core.learn.data import load_checked_sequence
     from colgnn_core.rollout import load_model, rollout
     from colgnn_core.scenes import load_scene, scene_names
@@ -135,14 +134,7 @@ def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier
         "cpu_count": os.cpu_count(), "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "points": points, "wall_s": time.perf_counter() - t_start,
     }
-    paths = {"json": out / "frontier.json", "markdown": out / "frontier.md", "plot": out / "frontier.png"}
-    result["files"] = {k: str(v) for k, v in paths.items()}
-    with atomic_write(paths["markdown"], "w") as fh:
-        fh.write(format_frontier(result))
-    plot_frontier(result, paths["plot"])
-    with atomic_write(paths["json"], "w") as fh:
-        json.dump(result, fh, indent=1)
-    return result
+    return write_report(result, out, "frontier", "frontier.png", format_frontier, plot_frontier)
 
 
 def _head(seq, frames: int):

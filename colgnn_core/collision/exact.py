@@ -32,7 +32,8 @@ def _ipctk():
     return ipctk
 
 
-def _stack8(args, names) -> np.ndarray:
+def pair_arrays(args, names) -> list[np.ndarray]:
+    """The 8 position arrays of K primitive pairs as float64 [K,3] each; InputError naming a bad one."""
     arrs = []
     for a, n in zip(args, names):
         a = np.asarray(a, dtype=np.float64)
@@ -40,8 +41,12 @@ def _stack8(args, names) -> np.ndarray:
             raise InputError(f"{n} must be [K,3], got shape {a.shape}")
         arrs.append(a)
     if len({a.shape[0] for a in arrs}) != 1:
-        raise InputError("all CCD inputs must have the same number of rows")
-    return np.ascontiguousarray(np.stack(arrs, axis=1))  # [K,8,3]
+        raise InputError("all pair inputs must have the same number of rows")
+    return arrs
+
+
+def _stack8(args, names) -> np.ndarray:
+    return np.ascontiguousarray(np.stack(pair_arrays(args, names), axis=1))  # [K,8,3]
 
 
 def _run_ccd(fn, q: np.ndarray, tolerance: float, max_iterations: int) -> tuple[np.ndarray, np.ndarray]:

@@ -35,6 +35,7 @@ from numba.extending import register_jitable
 
 from colgnn_core.collision.filter import (_U, ERROR_FACTOR, UNDERFLOW_GUARD, _coefficients, _cross, _dot, _keep,
                                           _quad_points, _sub, stack_quads)
+from colgnn_core.collision.exact import pair_arrays
 from colgnn_core.errors import InputError
 
 __all__ = [
@@ -290,18 +291,6 @@ def depth_quads(X0, X1, quads, is_ee):
     return depth
 
 
-def _narrow_inputs(args, names) -> list[np.ndarray]:
-    out = []
-    for a, n in zip(args, names):
-        a = np.asarray(a, dtype=np.float64)
-        if a.ndim != 2 or a.shape[1] != 3:
-            raise InputError(f"{n} must be [K,3], got shape {a.shape}")
-        out.append(a)
-    if len({len(a) for a in out}) != 1:
-        raise InputError("all narrow-phase inputs must have the same number of rows")
-    return out
-
-
 def _narrow_points(points: list[np.ndarray], is_ee: bool) -> NarrowResult:
     X0, X1, quads = stack_quads(points)
     flags = np.full(len(quads), is_ee, dtype=bool)
@@ -311,13 +300,13 @@ def _narrow_points(points: list[np.ndarray], is_ee: bool) -> NarrowResult:
 
 def vertex_face_narrow(p0, a0, b0, c0, p1, a1, b1, c1) -> NarrowResult:
     """Crossing, toi and plane depth at t1 for K vertex-triangle pairs ([K,3] positions, m)."""
-    pts = _narrow_inputs((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1", "c1"))
+    pts = pair_arrays((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1", "c1"))
     return _narrow_points(pts, False)
 
 
 def edge_edge_narrow(ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1) -> NarrowResult:
     """Crossing, toi and line depth at t1 for K edge-edge pairs (ipctk argument order)."""
-    u0, v0, k0, l0, u1, v1, k1, l1 = _narrow_inputs(
+    u0, v0, k0, l0, u1, v1, k1, l1 = pair_arrays(
         (ea0_t0, ea1_t0, eb0_t0, eb1_t0, ea0_t1, ea1_t1, eb0_t1, eb1_t1),
         ("ea0_t0", "ea1_t0", "eb0_t0", "eb1_t0", "ea0_t1", "ea1_t1", "eb0_t1", "eb1_t1"))
     return _narrow_points([l0, k0, u0, v0, l1, k1, u1, v1], True)
