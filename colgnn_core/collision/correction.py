@@ -223,17 +223,17 @@ class CollisionCorrector:
             x1[idx] += (self.margin + self.mesh_margin - dl)[:, None] * g
         return len(low)
 
-    def _proximity(self, x1: np.ndarray, T1: np.ndarray, pose1: np.ndarray, sdf: np.ndarray
+    def _proximity(self, x1: np.ndarray, T1: np.ndarray, pose1: np.ndarray, sdf: np.ndarray, lmax: float
                    ) -> tuple[list, list, int]:
         """Pushes for object edges / faces closer than TRIGGER x margin to a tool edge / vertex at t+1.
 
         Vertex-face proximity (object vertex, tool face) is the projection's job (the SDF bounds the
-        distance to the inscribed tool mesh). ``sdf`` [S]: exact below ``self._proximity_reach(x1)``.
-        Returns (vertex id arrays, displacement arrays, pairs)."""
+        distance to the inscribed tool mesh). ``lmax``: the longest surface edge at t+1 (m); ``sdf`` [S]:
+        exact below ``self._proximity_level + lmax``. Returns (vertex id arrays, displacement arrays, pairs)."""
         trig = TRIGGER * self.margin
         ve, vf = self.surface.vertex_edges, self.surface.vertex_faces
         ee, ee_d, alpha, fv, fv_d, w3 = _proximity_pairs(
-            x1, np.ascontiguousarray(T1), self.surface_ids, sdf, trig + self.mesh_margin, trig, self.surface.edges,
+            x1, np.ascontiguousarray(T1), self.surface_ids, sdf, self._proximity_level, lmax, trig, self.surface.edges,
             self.surface.faces, ve[0], ve[1], vf[0], vf[1], self.tool_surface.edges)
         vids, disps = [], []
         for ids, dist, w in ((self.surface.edges[ee[:, 0]], ee_d, np.stack([1.0 - alpha, alpha], axis=1)),
@@ -260,9 +260,10 @@ class CollisionCorrector:
             lb[idx] = self.tool.sdf(x[S[idx]], pose)
         return lb
 
-    def _proximity_reach(self, x1: np.ndarray) -> float:
-        """SDF (m) below which a surface vertex may belong to a primitive in proximity range."""
-        return TRIGGER * self.margin + self.mesh_margin + _max_edge_length_kernel(x1, self.surface.edges)
+    @property
+    def _proximity_level(self) -> float:
+        """trigger distance + the tool mesh's tessellation bound (m): see :func:`_proximity_pairs`."""
+        return TRIGGER * self.margin + self.mesh_margin
 
     def _pushes(self, hits: dict, x0, x1, T0, T1, iteration: int) -> tuple[np.ndarray, np.ndarray]:
         """Averaged displacement (vertex ids [K], displacements [K,3]) resolving the crossing pairs."""
@@ -376,8 +377,9 @@ class CollisionCorrector:
                 clean = n_hits == 0 and not np.any(d < self.mesh_margin)
                 t_resolve += time.perf_counter() - t
                 break
-            sdf = self._surface_sdf(x1, pose1, self._proximity_reach(x1))
-            self._extra_v, self._extra_d, n_close = self._proximity(x1, T1, pose1, sdf)
+            lmax = _max_edge_length_kernel(x1, self.surface.edges)  # once per pass: SDF reach and the kernel
+            sdf = self._surface_sdf(x1, pose1, self._proximity_level + lmax)
+            self._extra_v, self._extra_d, n_close = self._proximity(x1, T1, pose1, sdf, lmax)
             vid, disp = self._pushes(hits, x0, x1, T0, T1, it)
             if len(vid):
                 x1[vid] += disp
@@ -593,10 +595,10 @@ def _barycentric_clamped(p, a, b, c) -> np.ndarray:
 
 
 @njit(cache=True)
-def _proximity_pairs(x1, T1, S, sdf, level, trig, edges, faces, ve_off, ve_ids, vf_off, vf_ids, tool_edges):
+def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve_ids, vf_off, vf_ids, tool_edges):
     """Object edges / faces within ``trig`` (m) of a tool edge / vertex at t+1.
 
-    Candidates: primitives around surface vertices with SDF < ``level`` + the longest surface edge
+    Candidates: primitives around surface vertices with SDF < ``level`` + ``lmax`` (the longest surface edge)
     whose bound (min vertex SDF - their longest edge) is below ``level`` (= trig + the tool mesh's
     tessellation bound); then a box join (boxes grown by ``trig``) and exact distances. Returns (ee [K,2] (object edge, tool edge), ee_dist,
     ee_alpha, fv [J,2] (tool vertex, object face), fv_dist, fv_w [J,3]).
@@ -605,9 +607,6 @@ def _proximity_pairs(x1, T1, S, sdf, level, trig, edges, faces, ve_off, ve_ids, 
     s = np.full(n, np.inf)
     for i in range(len(S)):
         s[S[i]] = sdf[i]
-    lmax = 0.0
-    for e in range(edges.shape[0]):
-        lmax = max(lmax, _row_dist(x1, edges[e, 0], x1, edges[e, 1]))
     reach = level + lmax
     seen_e = np.zeros(edges.shape[0], dtype=np.bool_)
     seen_f = np.zeros(faces.shape[0], dtype=np.bool_)
@@ -686,7 +685,7 @@ def _warm_up_kernels() -> None:
     surf = Surface.from_faces(np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]]), 4)
     tool = x + [0.2, 0.2, 0.2]
     ve, vf = surf.vertex_edges, surf.vertex_faces
-    _proximity_pairs(x, tool, surf.vertices, np.zeros(4), 1.0, 1.0, surf.edges, surf.faces, ve[0], ve[1], vf[0],
+    _proximity_pairs(x, tool, surf.vertices, np.zeros(4), 1.0, 1.5, 1.0, surf.edges, surf.faces, ve[0], ve[1], vf[0],
                      vf[1], surf.edges)
     _segment_params(x, tool, x, tool)
     _segment_distance(x, tool, x, tool)
