@@ -31,5 +31,10 @@ test-slow: setup
 demo: setup
 	$(VPY) -m colgnn_ros.demo --scene sphere_mat --out out/demo
 
+# docs/RESULTS.md, docs/results.json and docs/img/: every table and picture, from the shipped checkpoints and
+# test data simulated on this machine (data/results, resumable). Takes about an hour on 2 cores (stated in the report).
+results: setup
+	$(VPY) -m colgnn_core evaluate --all --out docs --compile --threads 2
+
 clean:
 	rm -rf $(VENV) build install log *.egg-info

@@ -28,6 +28,31 @@ def rmse_fraction(pred: np.ndarray, truth: np.ndarray, diagonal: float) -> np.nd
     return np.sqrt(((pred - truth) ** 2).sum(-1).mean(-1)) / diagonal
 
 
+def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
+    """Step ``predictor`` through ``poses[1:]`` from mesh positions ``x0`` [N,3] and ``poses[0]``, timing each step.
+
+    Returns ``stages`` ({'total', 'graph', 'gnn', 'correction'}: per-step ms lists; total = wall time of
+    ``step``), ``positions`` [T,N,3] (frame 0 = x0), ``crossings_before``, ``crossings_after`` and ``fallbacks``
+    (totals over the steps).
+    """
+    predictor.reset(positions=x0, tool_pose=poses[0])
+    stages: dict[str, list[float]] = {"total": [], "graph": [], "gnn": [], "correction": []}
+    positions = [np.asarray(x0, dtype=np.float64)]
+    before = after = fallbacks = 0
+    for pose in poses[1:]:
+        t0 = time.perf_counter()
+        res = predictor.step(pose)
+        stages["total"].append(1e3 * (time.perf_counter() - t0))
+        for k in ("graph", "gnn", "correction"):
+            stages[k].append(float(res.timings_ms.get(k, 0.0)))
+        positions.append(res.positions)
+        before += res.vertex_face_before + res.edge_edge_before
+        after += res.vertex_face_after + res.edge_edge_after
+        fallbacks += int(res.fallback)
+    return {"stages": stages, "positions": np.stack(positions), "crossings_before": int(before),
+            "crossings_after": int(after), "fallbacks": int(fallbacks)}
+
+
 def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
           correction: bool = True, progress: bool = False, compile: bool = False) -> dict:
     """Benchmark one scene. Returns the JSON fields of the ``colgnn bench`` contract.
@@ -41,8 +66,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
     """
     from colgnn_core.predictor import Predictor
     from colgnn_core.scenes import scene_names
-    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
     from colgnn_core.sim.dataset import simulate_sequence
+    from colgnn_core.stability import family_poses
 
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
@@ -53,27 +78,14 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
     scene = predictor.scene
     if scene.name != scene_name:
         raise InputError(f"checkpoint is for scene {scene.name!r}, not {scene_name!r}")
-    poses = sample_poses(scene, split_seeds("test", 1)[0], frames)
+    poses = family_poses(scene, frames)
 
     truth = simulate_sequence(scene, poses, progress=progress)
     ipc_ms = truth.extra["step_ms"][1:]
 
-    predictor.reset(positions=truth.object_positions[0], tool_pose=poses[0])
-    stages: dict[str, list[float]] = {"total": [], "graph": [], "gnn": [], "correction": []}
-    positions = [truth.object_positions[0]]
-    before = after = fallbacks = 0
-    for pose in poses[1:]:
-        t0 = time.perf_counter()
-        res = predictor.step(pose)
-        wall = 1e3 * (time.perf_counter() - t0)
-        stages["total"].append(wall)
-        for k in ("graph", "gnn", "correction"):
-            stages[k].append(float(res.timings_ms.get(k, 0.0)))
-        positions.append(res.positions)
-        before += res.vertex_face_before + res.edge_edge_before
-        after += res.vertex_face_after + res.edge_edge_after
-        fallbacks += int(res.fallback)
-    err = rmse_fraction(np.stack(positions), truth.object_positions, scene.bbox_diagonal())
+    timed = timed_rollout(predictor, poses, truth.object_positions[0])
+    stages = timed["stages"]
+    err = rmse_fraction(timed["positions"], truth.object_positions, scene.bbox_diagonal())
     total = _stats(stages["total"])
     ipc = _stats(ipc_ms)
     return {
@@ -90,9 +102,9 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "speedup_vs_ipc": ipc["median"] / total["median"],
         "rollout_rmse": {"step_1": float(err[1]), "step_10": float(err[min(10, len(err) - 1)]),
                          "all": float(err[1:].mean())},
-        "crossings_before_correction": int(before),
-        "crossings_after_correction": int(after),
-        "fallbacks": int(fallbacks),
+        "crossings_before_correction": timed["crossings_before"],
+        "crossings_after_correction": timed["crossings_after"],
+        "fallbacks": timed["fallbacks"],
         "threads": int(torch.get_num_threads()),
         "compiled": bool(predictor.compiled),
         "vertices": int(len(scene.object.vertices)),

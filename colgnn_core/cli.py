@@ -133,6 +133,18 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from colgnn_core.evaluate import evaluate, format_markdown
 
+    if args.all:
+        from colgnn_core.results import results
+
+        report = results(args.out, scenes=args.scene, data_root=args.data_root, models_dir=args.models,
+                         test_sequences=args.test_sequences, frames=args.frames, jobs=args.jobs, threads=args.threads,
+                         compile=args.compile, hard_frames=args.hard_frames, random_steps=args.random_steps,
+                         progress=not args.quiet)
+        print(f"wrote {report['files']['markdown']} and {report['files']['json']} in {report['wall_s'] / 60:.1f} min")
+        return 0
+    if not args.scene or len(args.scene) != 1:
+        raise InputError("give one --scene (or --all for the results report)")
+    args.scene = args.scene[0]
     if args.frontier:
         from colgnn_core.frontier import format_frontier, frontier
 
@@ -281,7 +293,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     handlers["bench"] = cmd_bench
 
     p = sub.add_parser("evaluate", help="rollout accuracy and collision metrics on a dataset's test sequences")
-    p.add_argument("--scene", required=True)
+    p.add_argument("--scene", action="append", default=None,
+                   help="the scene (with --all: repeat to choose scenes; default all)")
     p.add_argument("--checkpoint", default=None, help="default: the shipped model of the scene")
     p.add_argument("--data", default=None, help="dataset folder with test_XXXX.npz (made by `colgnn generate`)")
     p.add_argument("--out", required=True, help="output folder: metrics.json, metrics.md, rmse_over_time.png")
@@ -295,9 +308,20 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--checkpoints", dest="frontier_checkpoints", nargs="+", default=None,
                    help="with --frontier: the GNN checkpoints (default: --checkpoint or the shipped model)")
     p.add_argument("--steps", type=_positive, default=40, help="with --frontier: rollout steps (default 40)")
-    p.add_argument("--threads", type=_positive, default=2, help="with --frontier: torch threads (default 2)")
-    p.add_argument("--compile", action="store_true", help="with --frontier: torch.compile the networks")
+    p.add_argument("--threads", type=_positive, default=2, help="with --frontier or --all: torch threads (default 2)")
+    p.add_argument("--compile", action="store_true", help="with --frontier or --all: torch.compile the networks")
     p.add_argument("--no-ipc", action="store_true", help="with --frontier: leave out the solver points")
+    p.add_argument("--all", action="store_true",
+                   help="instead: the results report (RESULTS.md, results.json, img/) of every scene's shipped "
+                        "models into --out, on freshly simulated test data (`make results`)")
+    p.add_argument("--data-root", default="data/results", help="with --all: test data folder (resumable)")
+    p.add_argument("--models", default=None, help="with --all: checkpoint folder (default: the shipped models)")
+    p.add_argument("--test-sequences", type=_positive, default=2, help="with --all: test sequences per scene")
+    p.add_argument("--frames", type=_positive, default=51, help="with --all: frames per test sequence")
+    p.add_argument("--jobs", type=_positive, default=2, help="with --all: solver processes for the test data")
+    p.add_argument("--hard-frames", type=_positive, default=40, help="with --all: length of the short hard cases")
+    p.add_argument("--random-steps", type=int, default=2000,
+                   help="with --all: steps of the random motion with tilts (0: leave it out)")
     handlers["evaluate"] = cmd_evaluate
 
     p = sub.add_parser("render", help="render a sequence or rollout file")

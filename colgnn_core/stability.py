@@ -58,6 +58,82 @@ def _leave_and_settle(scene, last: np.ndarray, max_translation: float, settle: i
     return np.concatenate([back, np.repeat(rest[None], settle, axis=0)])
 
 
+def family_poses(scene, frames: int, index: int = 0) -> np.ndarray:
+    """The ``index``-th held-out test trajectory of the scene's family, ``frames`` long [frames,7]."""
+    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
+
+    return sample_poses(scene, split_seeds("test", index + 1)[index], frames)
+
+
+def hard_cases(scene, frames: int = 40, random_steps: int = 2000) -> dict[str, np.ndarray]:
+    """The hard-case tool trajectories [T,7] of a scene, by name.
+
+    * ``test sequence``: a held-out family trajectory;
+    * ``3x faster``: a family trajectory at three times the training speed (every third pose);
+    * ``grazing``: a drag across the target at the shallowest family depth minus 0.3 dhat: the tool just
+      touches the surface;
+    * ``jitter``: the scripted press with ±1.5 mm of uniform noise on every pose;
+    * ``leave and re-enter``: repeated fast stabs to the deepest family depth;
+    * ``random with tilts``: ``random_steps`` steps of smooth random motion with the family's tilts (left out
+      when ``random_steps`` is 0).
+    """
+    from colgnn_core.scenes.trajectories import scripted_poses
+
+    graze = scripted_poses(scene, "drag", frames)
+    graze[:, 2] += float(scene.family["depth"][0]) - 0.3 * scene.dhat
+    jitter = scripted_poses(scene, "press", frames)
+    rng = np.random.default_rng(3)
+    jitter[1:, :3] += rng.uniform(-1.5e-3, 1.5e-3, size=(len(jitter) - 1, 3))
+    jitter[:, :3] = np.clip(jitter[:, :3], scene.workspace_min, scene.workspace_max)
+    cases = {"test sequence": family_poses(scene, frames + 1), "3x faster": family_poses(scene, 3 * frames, 2)[::3],
+             "grazing": graze, "jitter": jitter, "leave and re-enter": scripted_poses(scene, "stab", frames)}
+    if random_steps:
+        cases["random with tilts"] = scripted_poses(scene, "random", random_steps + 1, seed=7)
+    return cases
+
+
+def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
+    """Step the Predictor ``pred`` through ``poses[1:]`` (from ``poses[0]``, rest shape) and check the published
+    frames and steps with ipctk's exact oracle.
+
+    Every ``check_every``-th frame, and every frame whose step needed a correction or a fallback, is checked for
+    object–tool intersection; the step into it (when it was one model step) for a crossing with ipctk's
+    line-search clearance (``crossing``) and for a real touch (``contact``). Raises InputError if a published
+    frame is not finite. Returns counts: steps, checked, intersecting, crossing, contact, fallback_steps,
+    fallbacks_total, before (crossings found before the correction), after_nonzero (steps the Predictor itself
+    reported unclean after its correction), substeps.
+    """
+    from colgnn_core.collision.exact import tool_intersects, tool_step_free
+
+    scene = pred.scene
+    F, TF = scene.object.faces, scene.tool.faces
+    pred.reset(tool_pose=poses[0])
+    prev, prev_tool = pred.positions, scene.tool.world_vertices(pred.tool_pose)
+    stats = {"steps": 0, "checked": 0, "intersecting": 0, "crossing": 0, "contact": 0, "fallback_steps": 0,
+             "before": 0, "after_nonzero": 0, "substeps": 0}
+    for k in range(1, len(poses)):
+        r = pred.step(poses[k])
+        if not np.isfinite(r.positions).all():
+            raise InputError(f"the rollout became non-finite at step {k}")
+        stats["steps"] += 1
+        stats["fallback_steps"] += int(r.fallback)
+        before = r.vertex_face_before + r.edge_edge_before
+        stats["before"] += before
+        stats["substeps"] += r.substeps
+        stats["after_nonzero"] += bool(r.vertex_face_after or r.edge_edge_after or r.penetrating_vertices_after)
+        if k % check_every == 0 or before or r.fallback:
+            stats["checked"] += 1
+            stats["intersecting"] += tool_intersects(r.positions, F, r.tool_vertices, TF)
+            # With substeps the published step is not one linear motion: only its frames are checked.
+            if r.substeps == 1 and not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF):
+                stats["crossing"] += 1
+                stats["contact"] += not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF,
+                                                       contact_only=True)
+        prev, prev_tool = r.positions, r.tool_vertices
+    stats["fallbacks_total"] = pred.fallbacks
+    return stats
+
+
 def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, seed: int = 0,
               check_every: int = 10, memory_every: int = 250, threads: int = 2, compile: bool = False,
               limits: str = "none", progress: bool = True) -> dict:

@@ -18,14 +18,14 @@ import pytest
 import torch
 
 from colgnn_core.collision.correction import CollisionCorrector, certify_triangles, rigid_step
-from colgnn_core.collision.exact import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, object_tool_collision_mesh,
-                                         tool_intersects)
+from colgnn_core.collision.exact import tool_intersects, tool_step_free
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
 from colgnn_core.learn.checkpoint import CheckpointMeta, LoadedCheckpoint
 from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.model import ModelConfig, Simulator
 from colgnn_core.scenes import load_scene, scene_names
+from colgnn_core.stability import check_rollout, family_poses, hard_cases
 
 torch.set_num_threads(1)
 
@@ -37,19 +37,9 @@ def oracle_intersects(object_V, object_F, tool_V, tool_F) -> bool:
 
 
 def oracle_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *, contact_only: bool = False) -> bool:
-    """ipctk Tight-Inclusion CCD: is the linear step of object surface and tool contact-free?
-
-    By default with ipctk's conservative rescaling 0.8 (exact.py's setting): a pair that comes closer than
-    min(0.2 x its initial distance, 1e-4 m) counts as a collision (IPC's line-search clearance), so this is
-    stricter than "no contact". ``contact_only``: rescaling 1, i.e. minimum separation 0 (true contact).
-    """
-    import ipctk
-
-    mesh, V0 = object_tool_collision_mesh(object_V0, object_F, tool_V0, tool_F)
-    V1 = np.asfortranarray(np.vstack([np.asarray(object_V1)[np.unique(object_F)], tool_V1]))
-    ccd = ipctk.TightInclusionCCD(tolerance=DEFAULT_TOLERANCE, max_iterations=DEFAULT_MAX_ITERATIONS,
-                                  conservative_rescaling=1.0 if contact_only else 0.8)
-    return bool(ipctk.is_step_collision_free(mesh, V0, V1, broad_phase=ipctk.LBVH(), narrow_phase_ccd=ccd))
+    """ipctk Tight-Inclusion CCD: is the linear step of object surface and tool contact-free? (see
+    :func:`colgnn_core.collision.exact.tool_step_free`: stricter than "no contact" unless ``contact_only``)."""
+    return tool_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, contact_only=contact_only)
 
 
 def test_oracle_sees_tool_contact_and_ignores_self_contact():
@@ -101,32 +91,10 @@ def ci_scene(name: str):
 
 
 def run_checked(pred, poses: np.ndarray, check_every: int = 1) -> dict:
-    """Step ``pred`` through poses[1:], checking every published frame and step with the oracle."""
-    from colgnn_core.predictor import Predictor  # noqa: F401  (the API under test)
-
-    scene = pred.scene
-    F, TF = scene.object.faces, scene.tool.faces
-    pred.reset(tool_pose=poses[0])
-    prev, prevT = pred.positions, scene.tool.world_vertices(pred.tool_pose)
-    stats = {"steps": 0, "intersecting": 0, "crossing": 0, "contact": 0, "fallback_steps": 0, "before": 0,
-             "substeps": 0}
-    for k in range(1, len(poses)):
-        r = pred.step(poses[k])
-        assert np.isfinite(r.positions).all()
-        stats["steps"] += 1
-        stats["fallback_steps"] += int(r.fallback)
-        stats["before"] += r.vertex_face_before + r.edge_edge_before
-        stats["substeps"] += r.substeps
-        assert r.vertex_face_after == 0 and r.edge_edge_after == 0 and r.penetrating_vertices_after == 0
-        if k % check_every == 0 or r.vertex_face_before or r.edge_edge_before or r.fallback:
-            # Substeps: the oracle checks the whole published step only when it was one model step.
-            stats["intersecting"] += oracle_intersects(r.positions, F, r.tool_vertices, TF)
-            if r.substeps == 1 and not oracle_step_free(prev, r.positions, F, prevT, r.tool_vertices, TF):
-                stats["crossing"] += 1  # closer than ipctk's line-search clearance (~1e-4 m) during the step ...
-                stats["contact"] += not oracle_step_free(prev, r.positions, F, prevT, r.tool_vertices, TF,
-                                                         contact_only=True)  # ... or real contact
-        prev, prevT = r.positions, r.tool_vertices
-    stats["fallbacks_total"] = pred.fallbacks
+    """Step ``pred`` through poses[1:] with the oracle checks of :func:`colgnn_core.stability.check_rollout`;
+    the Predictor must report every step clean after its correction."""
+    stats = check_rollout(pred, poses, check_every)
+    assert stats["after_nonzero"] == 0, stats
     return stats
 
 
@@ -250,9 +218,7 @@ def test_corrector_rejects_bad_input():
 
 # -- corrected rollouts through the Predictor (hard cases) ----------------------------------------------------------
 def _family_poses(scene, frames, seed=2):
-    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
-
-    return sample_poses(scene, split_seeds("test", seed + 1)[seed], frames)
+    return family_poses(scene, frames, seed)
 
 
 @pytest.mark.parametrize("name", ["cone_bunny", "knife_torus", "sphere_mat", "cylinder_banana"])
@@ -346,16 +312,7 @@ def _shipped(name: str):
 
 
 def _hard_cases(scene) -> dict[str, np.ndarray]:
-    from colgnn_core.scenes.trajectories import scripted_poses
-
-    graze = scripted_poses(scene, "drag", 40)
-    graze[:, 2] += float(scene.family["depth"][0]) - 0.3 * scene.dhat  # the tool just touches the surface
-    jitter = scripted_poses(scene, "press", 40)
-    rng = np.random.default_rng(3)
-    jitter[1:, :3] += rng.uniform(-1.5e-3, 1.5e-3, size=(len(jitter) - 1, 3))
-    jitter[:, :3] = np.clip(jitter[:, :3], scene.workspace_min, scene.workspace_max)
-    return {"test sequence": _family_poses(scene, 41, seed=0), "3x faster": _family_poses(scene, 120)[::3],
-            "grazing": graze, "jitter": jitter, "leave and re-enter": scripted_poses(scene, "stab", 40)}
+    return hard_cases(scene, random_steps=0)
 
 
 @pytest.mark.parametrize("case", ["test sequence", "3x faster", "grazing", "jitter", "leave and re-enter"])

@@ -155,6 +155,27 @@ def self_intersects(object_V, object_F) -> bool:
     return bool(ipctk.has_intersections(mesh, np.asfortranarray(object_V), broad_phase=ipctk.LBVH()))
 
 
+def tool_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *, contact_only: bool = False,
+                   tolerance: float = DEFAULT_TOLERANCE) -> bool:
+    """True if the linear step of the object *surface* and the tool has no object–tool contact (ipctk
+    Tight-Inclusion CCD; object self-contact is not counted).
+
+    By default with ipctk's conservative rescaling 0.8: a pair that comes closer than min(0.2 x its initial
+    distance, 1e-4 m) counts as a collision (IPC's line-search clearance), which is stricter than "no contact".
+    ``contact_only``: rescaling 1, i.e. only a real touch (separation 0) counts.
+    """
+    ipctk = _ipctk()
+    object_V1, _ = _check_mesh(object_V1, object_F, "object t1")
+    tool_V1, _ = _check_mesh(tool_V1, tool_F, "tool t1")
+    if np.shape(object_V0) != object_V1.shape or np.shape(tool_V0) != tool_V1.shape:
+        raise InputError("t0 and t1 vertex arrays must have the same shape")
+    mesh, V0 = object_tool_collision_mesh(object_V0, object_F, tool_V0, tool_F)
+    V1 = np.asfortranarray(np.vstack([object_V1[np.unique(object_F)], tool_V1]))
+    ccd = ipctk.TightInclusionCCD(tolerance=tolerance, max_iterations=DEFAULT_MAX_ITERATIONS,
+                                  conservative_rescaling=1.0 if contact_only else 0.8)
+    return bool(ipctk.is_step_collision_free(mesh, V0, V1, broad_phase=ipctk.LBVH(), narrow_phase_ccd=ccd))
+
+
 def is_step_collision_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *,
                            tolerance: float = DEFAULT_TOLERANCE) -> bool:
     """True if the linear motion V0 -> V1 of object and tool has no contact (ipctk Tight-Inclusion).

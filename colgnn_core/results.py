@@ -1,0 +1,296 @@
+"""``colgnn evaluate --all`` (``make results``): the results report ``docs/RESULTS.md``, end to end.
+
+For every scene with a shipped ``full`` model (``<scene>.pt``; the other variants are ``<scene>_<variant>.pt``
+in the same folder, each used where it exists) the report is rebuilt from scratch on this machine:
+
+1. **Test data**: ``test_sequences`` held-out family trajectories of ``frames`` frames simulated by the project's
+   IPC solver (``colgnn generate --split test``; resumable, so a re-run reuses finished sequences). Their
+   per-step solver times are the IPC column of Table 1: the solver on the same poses the models are timed on.
+2. **Speed** (Table 1): the Predictor with the shipped ``full`` model (``threads`` torch threads, optionally
+   ``torch.compile``) over the first test sequence; "raw network" is the step without the correction stage
+   (everything else the step does is included), "with correction" is the whole published step.
+3. **Collisions and accuracy** (Table 2, accuracy table, error-over-time plot):
+   :func:`colgnn_core.evaluate.evaluate` of every variant (raw), plus the full model through the correction,
+   with the exact ipctk oracle.
+4. **Hard cases**: :func:`colgnn_core.stability.hard_cases` through the Predictor, each frame and step checked
+   by ipctk (:func:`colgnn_core.stability.check_rollout`).
+5. **Speed against error**: :func:`colgnn_core.frontier.frontier` where frontier checkpoints are shipped
+   (``frontier/<scene>/*.pt`` beside the models).
+6. **Pictures**: ground truth / baseline / colgnn strips at the same frames (penetrating vertices red), and the
+   ablation strip (full vs no-compact, raw networks).
+
+Everything measured goes to ``results.json``; ``RESULTS.md`` is written from it, with the paper's figures beside
+ours. Nothing in the report comes from an earlier run except resumed test-data sequences (said in the header).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from colgnn_core.errors import InputError
+from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
+
+VARIANTS = ("subspace", "baseline", "no-compact", "full")
+ROWS = (("ground_truth", "ground truth (IPC)"), ("subspace", "subspace (Holden et al. 2019)"),
+        ("baseline", "baseline (MeshGraphNets)"), ("no-compact", "no-compact (ablation)"),
+        ("full", "full (paper method)"), ("full+correction", "full + correction (colgnn)"))
+CROSSING_KEYS = ("N_vf", "d_vf_mean", "d_vf_max", "N_ee", "d_ee_mean", "d_ee_max")
+
+PAPER_HARDWARE = "Intel Xeon E5-2637, 128 GB RAM, GTX 1080 Ti (network on the GPU; IPC on the CPU)"
+# The paper's Table 1 (its mesh sizes, IPC ms per step, its method's ms per step, speedup).
+PAPER_TABLE1 = {
+    "cone_bunny": {"vertices": 3022, "edges": 9054, "faces": 6036, "ipc_ms": 2070, "ms": 75, "speedup": 27.60},
+    "knife_torus": {"vertices": 5926, "edges": 17772, "faces": 11848, "ipc_ms": 6380, "ms": 60, "speedup": 127.60},
+    "sphere_mat": {"vertices": 4439, "edges": 13305, "faces": 8870, "ipc_ms": 2440, "ms": 135, "speedup": 18.07},
+    "cylinder_banana": {"vertices": 3607, "edges": 10809, "faces": 7206, "ipc_ms": 1200, "ms": 90, "speedup": 13.33},
+}
+# The paper's Table 2: reduction (%) of its method relative to the MeshGraphNets baseline, per collision type
+# (vertex-face: cone-bunny, edge-face: knife-torus, face-face: sphere-mat and cylinder-banana).
+PAPER_TABLE2 = {
+    "cone_bunny": {"N_vf": 69.61, "d_vf_mean": 72.23, "d_vf_max": 69.63},
+    "knife_torus": {"N_vf": 62.50, "d_vf_mean": 53.67, "d_vf_max": 49.84},
+    "sphere_mat": {"N_vf": 58.15, "d_vf_mean": 58.16, "d_vf_max": 59.51, "N_ee": 34.46, "d_ee_mean": 42.22,
+                   "d_ee_max": 45.22},
+    "cylinder_banana": {"N_vf": 58.15, "d_vf_mean": 58.16, "d_vf_max": 59.51, "N_ee": 34.46, "d_ee_mean": 42.22,
+                        "d_ee_max": 45.22},
+}
+
+
+def model_paths(models_dir: Path, scene_name: str) -> dict[str, Path]:
+    """The shipped checkpoints of a scene by variant (only those that exist)."""
+    names = {v: f"{scene_name}.pt" if v == "full" else f"{scene_name}_{v}.pt" for v in VARIANTS}
+    return {v: Path(models_dir) / n for v, n in names.items() if (Path(models_dir) / n).is_file()}
+
+
+def machine() -> dict:
+    """The CPU model, core count and Python/torch versions of this machine."""
+    import torch
+
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__}
+
+
+def test_data(scene, out_dir: Path, sequences: int, frames: int, jobs: int, progress: bool) -> tuple[Path, int]:
+    """Simulate (or resume) the scene's test sequences; returns the folder and how many were already there."""
+    from colgnn_core.sim.dataset import generate_dataset
+
+    already = len(list(Path(out_dir).glob("test_*.npz"))) if Path(out_dir).is_dir() else 0
+    generate_dataset(scene.name, scene.resolution, out_dir, sequences=sequences, frames=frames, jobs=jobs,
+                     split="test", progress=progress)
+    return Path(out_dir), already
+
+
+def speed(loaded, scene, data_dir: Path, threads: int, compile: bool) -> dict:
+    """Table 1 row: the Predictor timed on the first test sequence, the solver's times on all of them."""
+    from colgnn_core.bench import _stats, timed_rollout
+    from colgnn_core.evaluate import _test_files
+    from colgnn_core.predictor import Predictor
+
+    files = _test_files(data_dir, scene)
+    first = load_sequence(files[0])
+    pred = Predictor(loaded, scene, correction=True, threads=threads, compile=compile)
+    timed = timed_rollout(pred, first.tool_poses, first.object_positions[0])
+    st = timed["stages"]
+    raw = [t - c for t, c in zip(st["total"], st["correction"])]
+    ipc = np.concatenate([load_sequence(f).extra["step_ms"][1:] for f in files])
+    total = _stats(st["total"])
+    return {"vertices": int(len(scene.object.vertices)), "surface_vertices": int(len(scene.object.surface_vertices)),
+            "edges": int(len(scene.object.edges)), "faces": int(len(scene.object.faces)),
+            "ipc_ms": _stats(ipc), "raw_ms": _stats(raw), "total_ms": total,
+            "graph_ms": _stats(st["graph"]), "gnn_ms": _stats(st["gnn"]), "correction_ms": _stats(st["correction"]),
+            "speedup_vs_ipc": float(np.median(ipc) / total["median"]), "steps": len(st["total"]),
+            "threads": pred.threads, "compiled": pred.compiled}
+
+
+def hard_case_report(loaded, scene, frames: int, random_steps: int, threads: int, progress: bool) -> dict:
+    """Each hard case of :func:`colgnn_core.stability.hard_cases` through the Predictor, checked by ipctk."""
+    from colgnn_core.predictor import Predictor
+    from colgnn_core.rollout import output_limits
+    from colgnn_core.stability import check_rollout, hard_cases
+
+    caps = output_limits(loaded, "data")
+    pred = Predictor(loaded, scene, correction=True, threads=threads, max_displacement=caps[0], max_deviation=caps[1])
+    out = {}
+    for name, poses in hard_cases(scene, frames, random_steps).items():
+        t0 = time.perf_counter()
+        try:
+            stats = check_rollout(pred, poses)
+            stats["finite"] = True
+        except InputError as e:  # a non-finite frame: reported, not hidden
+            stats = {"finite": False, "error": str(e)}
+        stats["wall_s"] = time.perf_counter() - t0
+        out[name] = stats
+        if progress:
+            print(f"  hard case {name!r}: {stats}", flush=True)
+    return out
+
+
+def pictures(evals_ckpts: dict, scene, data_dir: Path, img_dir: Path, count: int = 5) -> dict:
+    """The comparison strip (ground truth / baseline / colgnn) and the ablation strip (full vs no-compact)."""
+    from colgnn_core.evaluate import _test_files
+    from colgnn_core.render import render_strip
+    from colgnn_core.rollout import rollout
+
+    gt = load_sequence(_test_files(data_dir, scene)[0])
+    x0 = gt.object_positions[0]
+    run = {}
+    files = {}
+    for key, (variant, corrected) in {"baseline": ("baseline", False), "colgnn": ("full", True),
+                                      "full": ("full", False), "no-compact": ("no-compact", False)}.items():
+        if variant in evals_ckpts:
+            run[key] = rollout(evals_ckpts[variant], gt.tool_poses, correction=corrected, scene=scene,
+                               initial_positions=x0)
+    seqs, labels = [gt], ["ground truth"]
+    for key, label in (("baseline", "baseline"), ("colgnn", "colgnn")):
+        if key in run:
+            seqs.append(run[key])
+            labels.append(label)
+    files["comparison"] = str(render_strip(seqs, labels, img_dir / f"{scene.name}_comparison.png", count=count))
+    if "no-compact" in run:
+        files["ablation"] = str(render_strip([run["full"], run["no-compact"]], ["full", "no-compact"],
+                                             img_dir / f"{scene.name}_ablation.png", count=count))
+    return files
+
+
+def plot_errors(scene_name: str, curves: dict[str, dict], path: Path) -> Path:
+    """RMSE over time of every row (mean over the test sequences), one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=90)
+    for key, label in ROWS:
+        if key in curves:
+            mean = 100 * np.asarray(curves[key]["mean"])
+            ax.plot(np.arange(len(mean)), mean, label=label, linestyle="--" if key == "full+correction" else "-")
+    ax.set_xlabel("step")
+    ax.set_ylabel("RMSE (% of bbox diagonal)")
+    ax.set_title(f"{scene_name}: rollout error on the test sequences")
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_write(path, "wb") as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+    return path
+
+
+def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path, *, test_sequences: int,
+                  frames: int, jobs: int, threads: int, compile: bool, hard_frames: int, random_steps: int,
+                  progress: bool) -> dict:
+    """Everything the report says about one scene (see the module docstring)."""
+    from colgnn_core.evaluate import evaluate
+    from colgnn_core.rollout import load_model
+    from colgnn_core.scenes import load_scene
+
+    ckpts = model_paths(models_dir, scene_name)
+    if "full" not in ckpts:
+        return {"scene": scene_name, "skipped": f"no shipped full model ({models_dir / (scene_name + '.pt')})"}
+    loaded = load_model(ckpts["full"])
+    scene = load_scene(scene_name, loaded.meta.resolution)
+    t0 = time.perf_counter()
+    data_dir, resumed = test_data(scene, data_root / scene_name, test_sequences, frames, jobs, progress)
+    r: dict = {"scene": scene_name, "resolution": scene.resolution, "data_dir": str(data_dir),
+               "resumed_sequences": resumed, "checkpoints": {v: str(p) for v, p in ckpts.items()},
+               "test_data_s": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    r["speed"] = speed(loaded, scene, data_dir, threads, compile)
+    r["speed_s"] = time.perf_counter() - t0
+    rows: dict = {}
+    t0 = time.perf_counter()
+    for variant, path in ckpts.items():
+        modes = ("raw", "corrected") if variant == "full" else ("raw",)
+        e = evaluate(scene_name, checkpoint=path, data_dir=data_dir, out_dir=out / "results" / scene_name / variant,
+                     correction_modes=modes, progress=progress)
+        rows.setdefault("ground_truth", {"rmse": None, "collisions": e["rows"]["ground_truth"]["collisions"]})
+        rows[variant] = e["rows"]["raw"]
+        if variant == "full":
+            rows["full+correction"] = e["rows"]["corrected"]
+        r.setdefault("sequences", e["sequences"])
+        r.setdefault("frames", e["frames"])
+    r["evaluate_s"] = time.perf_counter() - t0
+    r["rows"] = {k: rows[k] for k, _ in ROWS if k in rows}
+    img = ensure_writable_dir(out / "img")
+    r["pictures"] = {"errors": str(plot_errors(scene_name, {k: v["rmse"]["curve"] for k, v in rows.items()
+                                                             if v["rmse"] is not None},
+                                               img / f"{scene_name}_rmse.png"))}
+    r["pictures"].update(pictures(ckpts, scene, data_dir, img))
+    t0 = time.perf_counter()
+    r["hard_cases"] = hard_case_report(loaded, scene, hard_frames, random_steps, threads, progress)
+    r["hard_cases_s"] = time.perf_counter() - t0
+    front = sorted((models_dir / "frontier" / scene_name).glob("*.pt"))
+    if front:
+        from colgnn_core.frontier import frontier
+
+        f = frontier(scene_name, [str(p) for p in front] + [str(ckpts["full"])]
+                     + ([str(ckpts["baseline"])] if "baseline" in ckpts else []), data_dir,
+                     out / "results" / scene_name / "frontier", steps=min(r["frames"]) - 1, threads=threads,
+                     compile=compile, progress=progress)
+        shutil.copyfile(f["files"]["plot"], img / f"{scene_name}_frontier.png")
+        r["frontier"] = {"result": {k: v for k, v in f.items() if k != "per_sequence"},
+                         "plot": str(img / f"{scene_name}_frontier.png")}
+    return r
+
+
+def results(out_dir="docs", *, scenes=None, data_root="data/results", models_dir=None, test_sequences: int = 2,
+            frames: int = 51, jobs: int = 2, threads: int = 2, compile: bool = True, hard_frames: int = 40,
+            random_steps: int = 2000, progress: bool = True) -> dict:
+    """Rebuild ``<out_dir>/RESULTS.md``, ``results.json`` and the pictures in ``<out_dir>/img``.
+
+    Args:
+        scenes: scene names (default: all).
+        data_root: where the test data is simulated (``<data_root>/<scene>``; resumable).
+        models_dir: shipped checkpoints (default: the package's ``assets/models``).
+        test_sequences, frames: test data size (frames ≥ 51 gives RMSE at step 50).
+        jobs: solver processes for the test data.
+        threads, compile: the Predictor's torch threads and torch.compile for the timings.
+        hard_frames, random_steps: length of the short hard cases and of the random motion with tilts.
+    """
+    from colgnn_core.rollout import MODEL_DIR
+    from colgnn_core.scenes import scene_names
+
+    names = list(scenes) if scenes else list(scene_names())
+    unknown = [n for n in names if n not in scene_names()]
+    if unknown:
+        raise InputError(f"unknown scene(s) {unknown}; valid scenes: {', '.join(scene_names())}")
+    if test_sequences < 1 or frames < 3:
+        raise InputError(f"need test_sequences >= 1 and frames >= 3, got {test_sequences} and {frames}")
+    out = ensure_writable_dir(out_dir)
+    models = Path(models_dir) if models_dir is not None else MODEL_DIR
+    t_start = time.perf_counter()
+    report = {"generated": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "machine": machine(),
+              "settings": {"test_sequences": test_sequences, "frames": frames, "threads": threads,
+                           "compile": compile, "hard_frames": hard_frames, "random_steps": random_steps},
+              "scenes": {}}
+    for name in names:
+        if progress:
+            print(f"== {name}", flush=True)
+        report["scenes"][name] = scene_results(name, out, Path(data_root), models, test_sequences=test_sequences,
+                                               frames=frames, jobs=jobs, threads=threads, compile=compile,
+                                               hard_frames=hard_frames, random_steps=random_steps,
+                                               progress=progress)
+    report["wall_s"] = time.perf_counter() - t_start
+    with atomic_write(out / "results.json", "w") as fh:
+        json.dump(report, fh, indent=1)
+    from colgnn_core.results_report import format_results
+
+    with atomic_write(out / "RESULTS.md", "w") as fh:
+        fh.write(format_results(report, out))
+    report["files"] = {"markdown": str(out / "RESULTS.md"), "json": str(out / "results.json")}
+    return report

@@ -1,0 +1,89 @@
+"""``colgnn evaluate --all`` (``make results``) end to end on the tiny trained models and tiny real data."""
+
+import json
+import shutil
+
+import pytest
+import torch
+
+import _train_fixtures as fx
+from colgnn_core.cli import main
+from colgnn_core.errors import InputError
+from colgnn_core.evaluate import _finite
+from colgnn_core.results import model_paths, results
+from colgnn_core.results_report import reduction
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def report():
+    models = fx.tmp_dir("results_models")
+    shutil.copyfile(fx.trained_checkpoint("full"), models / f"{fx.SCENE}.pt")
+    shutil.copyfile(fx.trained_checkpoint("baseline"), models / f"{fx.SCENE}_baseline.pt")
+    data_root = fx.tmp_dir("results_data")
+    # The fixture's test sequence is this command's test data (resumed, not re-simulated).
+    shutil.copytree(fx.dataset_dir(), data_root / fx.SCENE, dirs_exist_ok=True)
+    out = fx.tmp_dir("results_docs")
+    return results(out, scenes=[fx.SCENE, "sphere_mat"], data_root=data_root, models_dir=models, test_sequences=1,
+                   frames=fx.FRAMES, jobs=1, threads=1, compile=False, hard_frames=12, random_steps=30,
+                   progress=False), out
+
+
+def test_report_has_every_table_and_picture(report):
+    rep, out = report
+    md = (out / "RESULTS.md").read_text()
+    data = json.loads((out / "results.json").read_text())
+    assert _finite(data)
+    for heading in ("## Table 1: speed", "## Table 2: collisions", "## Accuracy", "## Speed against error",
+                    "## Hard cases", "## Pictures", "## Discussion"):
+        assert heading in md
+    s = data["scenes"][fx.SCENE]
+    assert s["resumed_sequences"] == 1 and "1 sequence(s) resumed" in md
+    assert set(s["rows"]) == {"ground_truth", "baseline", "full", "full+correction"}
+    assert "| subspace (Holden et al. 2019) | not shipped |" in md and "| no-compact (ablation) | not shipped |" in md
+    assert data["scenes"]["sphere_mat"]["skipped"].startswith("no shipped full model")
+    for key in ("errors", "comparison"):
+        path = out / "img" / f"{fx.SCENE}_{'rmse' if key == 'errors' else key}.png"
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"img/{path.name}" in md
+    assert "ablation" not in s["pictures"]  # no no-compact model
+    # the IPC column is the solver's own step times on these sequences
+    sp = s["speed"]
+    assert sp["ipc_ms"]["median"] > 0 and sp["total_ms"]["median"] > 0 and sp["steps"] == fx.FRAMES - 1
+    assert abs(sp["speedup_vs_ipc"] - sp["ipc_ms"]["median"] / sp["total_ms"]["median"]) < 1e-9
+    assert f"{sp['speedup_vs_ipc']:.0f}×" in md
+
+
+def test_reported_reductions_match_the_measured_rows(report):
+    rep, out = report
+    rows = rep["scenes"][fx.SCENE]["rows"]
+    base, full = rows["baseline"]["collisions"], rows["full"]["collisions"]
+    md = (out / "RESULTS.md").read_text()
+    if base["N_vf"] > 0:
+        r = reduction(full["N_vf"], base["N_vf"])
+        assert abs(r - 100 * (base["N_vf"] - full["N_vf"]) / base["N_vf"]) < 1e-9
+        assert f"{full['N_vf']:.3f} ({-r:+.0f}%)" in md
+    assert reduction(1.0, 4.0) == 75.0 and reduction(0.0, 0.0) is None and reduction(2.0, 1.0) == -100.0
+
+
+def test_correction_row_and_hard_cases_are_clean(report):
+    rep, _ = report
+    s = rep["scenes"][fx.SCENE]
+    c = s["rows"]["full+correction"]["collisions"]
+    assert c["N_vf_total"] == 0 and c["N_ee_total"] == 0 and c["intersecting_frames"] == 0
+    assert set(s["hard_cases"]) == {"test sequence", "3x faster", "grazing", "jitter", "leave and re-enter",
+                                    "random with tilts"}
+    for case, h in s["hard_cases"].items():
+        assert h["finite"] and h["intersecting"] == 0 and h["contact"] == 0 and h["after_nonzero"] == 0, (case, h)
+    assert s["hard_cases"]["random with tilts"]["steps"] == 30
+
+
+def test_model_paths_and_bad_arguments(tmp_path):
+    (tmp_path / "cone_bunny.pt").write_bytes(b"x")
+    (tmp_path / "cone_bunny_subspace.pt").write_bytes(b"x")
+    (tmp_path / "cone_bunny_other.pt").write_bytes(b"x")
+    assert set(model_paths(tmp_path, "cone_bunny")) == {"full", "subspace"}
+    with pytest.raises(InputError, match="unknown scene"):
+        results(tmp_path / "docs", scenes=["nope"])
+    assert main(["evaluate", "--out", str(tmp_path / "o")]) == 2  # neither --scene nor --all
