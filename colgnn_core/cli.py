@@ -112,7 +112,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from colgnn_core.stability import format_stability, stability
 
         result = stability(args.checkpoint or args.scene, steps=args.steps, seed=args.seed, threads=args.threads,
-                           compile=args.compile, limits=args.limits, progress=not args.json)
+                           compile=args.compile, limits=args.limits, rest_relaxation=args.rest_relaxation,
+                           progress=not args.json)
         if result["scene"] != args.scene:
             raise InputError(f"checkpoint is for scene {result['scene']!r}, not {args.scene!r}")
         print(json.dumps(result, indent=2) if args.json else format_stability(result))
@@ -289,6 +290,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--seed", type=int, default=0, help="with --stability: seed of the random motion")
     p.add_argument("--limits", choices=("none", "data"), default="none",
                    help="with --stability: cap the network output by the training data's extremes")
+    p.add_argument("--rest-relaxation", type=float, default=0.0,
+                   help="with --stability: pull the object back towards rest by this fraction per step while the "
+                        "tool is out of reach (see Predictor)")
     p.add_argument("--json", action="store_true")
     handlers["bench"] = cmd_bench
 

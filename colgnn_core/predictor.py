@@ -157,16 +157,23 @@ class Predictor:
         compile: run the network through ``torch.compile`` (~1.8x faster GNN on a CPU); it is
             compiled here, before the first step (seconds; cached on disk by torch), and falls back to
             eager with a warning where compiling is impossible. GNN models only.
+        rest_relaxation: fraction ``a`` of the way back to the rest shape the network's output moves in a step
+            in which the tool is out of the network's reach (no world edge): ``x <- x + a (rest - x)``. The
+            scenes' objects are elastic, so once released they return to rest; a learned model drifts instead
+            (a few % of the bbox diagonal after thousands of steps), and this pulls it back. 0 (default): off.
+            GNN models only; applied before the correction, so the guarantee is unchanged.
     """
 
     def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
                  threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
-                 max_deviation: float | None = None, compile: bool = False):
+                 max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0):
         from colgnn_core.rollout import RawStepper
 
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
+        if not 0.0 <= rest_relaxation < 1.0:
+            raise InputError(f"rest_relaxation must be in [0, 1), got {rest_relaxation}")
         if threads is not None:
             if threads < 1:
                 raise InputError(f"threads must be >= 1, got {threads}")
@@ -176,6 +183,8 @@ class Predictor:
         self.model = loaded.simulator
         self.template = self.model.template
         self.correction = bool(correction)
+        self.rest_relaxation = float(rest_relaxation)
+        self.relaxed_steps = 0  # model steps relaxed towards rest since reset
         self.max_substeps = int(max_substeps)
         self.threads = torch.get_num_threads()
         self.max_translation, self.max_rotation = (tool_step_limits(scene, loaded.extra) if step_limits is None
@@ -250,6 +259,7 @@ class Predictor:
         self._tool_np = self.scene.tool.world_vertices(pose)
         self.steps = 0
         self.fallbacks = 0
+        self.relaxed_steps = 0
 
     @property
     def tool_pose(self) -> np.ndarray:
@@ -326,6 +336,9 @@ class Predictor:
         x_raw = net.propose(pose_next, tool_next)
         ms["graph"] += net.last_ms["graph"]
         ms["gnn"] += net.last_ms["gnn"]
+        if self.rest_relaxation and net.world_edges == 0:
+            x_raw = x_raw + self.rest_relaxation * (net.rest - x_raw)
+            self.relaxed_steps += 1
         if self.corrector is not None:
             t = time.perf_counter()
             c = self.corrector.correct(net.x_t.numpy(), x_raw.numpy(), net.pose, pose_next,

@@ -118,16 +118,19 @@ class RawStepper:
     def propose(self, pose_next: np.ndarray, tool_next: torch.Tensor) -> torch.Tensor:
         """x_{t+1} [N,3] from the network (capped if asked) without advancing the state.
 
-        Sets ``self.clamped`` and ``self.last_ms`` ({'graph', 'gnn'} wall times of this call).
+        Sets ``self.clamped``, ``self.last_ms`` ({'graph', 'gnn'} wall times of this call) and
+        ``self.world_edges`` (world edges of the graph; None for models without one).
         """
         t0 = time.perf_counter()
         frame = Frame(self.x_prev, self.x_t, self.tool_t, tool_next, pose_next)
         if hasattr(self.model, "build_graph") and hasattr(self.model, "network"):
             graph = self.model.build_graph(frame)
+            self.world_edges = int(graph.world.senders.shape[0])
             t1 = time.perf_counter()
             pred_norm, _ = self.model.network(graph)
             x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev)
         else:  # models without the graph pieces (the subspace baseline)
+            self.world_edges = None
             t1 = t0
             x_next = self.model.predict(frame)
         t2 = time.perf_counter()

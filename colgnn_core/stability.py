@@ -136,17 +136,19 @@ def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
 
 def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, seed: int = 0,
               check_every: int = 10, memory_every: int = 250, threads: int = 2, compile: bool = False,
-              limits: str = "none", progress: bool = True) -> dict:
+              limits: str = "none", rest_relaxation: float = 0.0, progress: bool = True) -> dict:
     """Run the long rollout (see the module docstring) and return a JSON-ready report.
 
-    ``limits``: output caps of the Predictor ('none' or 'data', see :meth:`Predictor.from_checkpoint`)."""
+    ``limits``: output caps of the Predictor ('none' or 'data', see :meth:`Predictor.from_checkpoint`);
+    ``rest_relaxation``: see :class:`~colgnn_core.predictor.Predictor`."""
     from colgnn_core.collision.exact import self_intersects, tool_intersects
     from colgnn_core.predictor import Predictor
     from colgnn_core.scenes.trajectories import scripted_poses
 
     if steps < 1 or settle < 1 or check_every < 1 or memory_every < 1:
         raise InputError("steps, settle, check_every and memory_every must be >= 1")
-    pred = Predictor.from_checkpoint(checkpoint_or_scene, threads=threads, compile=compile, limits=limits)
+    pred = Predictor.from_checkpoint(checkpoint_or_scene, threads=threads, compile=compile, limits=limits,
+                                     rest_relaxation=rest_relaxation)
     scene = pred.scene
     poses = scripted_poses(scene, "random", steps + 1, seed=seed)
     poses = np.concatenate([poses, _leave_and_settle(scene, poses[-1], pred.max_translation, settle)])
@@ -186,7 +188,8 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
     return {
         "scene": scene.name, "resolution": scene.resolution, "checkpoint": str(checkpoint_or_scene),
         "random_steps": steps, "leave_and_settle_steps": len(poses) - 1 - steps, "seed": seed,
-        "threads": pred.threads, "compiled": pred.compiled, "limits": limits, **stats,
+        "threads": pred.threads, "compiled": pred.compiled, "limits": limits, "rest_relaxation": rest_relaxation,
+        "relaxed_steps": pred.relaxed_steps, **stats,
         "step_ms_median": float(np.median(step_ms)), "step_ms_p95": float(np.percentile(step_ms, 95)),
         "rss_mb_start": float(mb[0]), "rss_mb_end": float(mb[-1]), "rss_mb_per_1000_steps": slope,
         "rss_mb_samples": [[int(k), round(float(m), 1)] for k, m in memory],
@@ -201,6 +204,7 @@ def format_stability(r: dict) -> str:
     return "\n".join([
         f"{r['scene']} ({r['resolution']}): {r['random_steps']} random steps + {r['leave_and_settle_steps']} "
         f"leaving/settling, {r['threads']} threads{', compiled' if r['compiled'] else ''}, limits {r['limits']}, "
+        f"rest relaxation {r.get('rest_relaxation', 0.0):g} ({r.get('relaxed_steps', 0)} steps), "
         f"{r['wall_s']:.0f} s",
         f"  step ms median / p95           {r['step_ms_median']:.2f} / {r['step_ms_p95']:.2f}",
         f"  object-tool intersecting frames {r['tool_intersecting_frames']} of {r['checked_frames']} checked",

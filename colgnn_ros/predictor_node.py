@@ -80,6 +80,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("limits", "data", "cap the network output by its training data's extremes ('data': 2x the largest "
               "per-step motion, 1.5x the largest distance from rest; bounds a long run's drift) or not ('none')",
               choices=("data", "none")),
+    ParamSpec("rest_relaxation", 0.05, "while the tool is out of the network's reach, move the object this fraction "
+              "of the way back to its rest shape per step (the objects are elastic; a learned model drifts instead); "
+              "0 disables", range=(0.0, 0.99)),
     ParamSpec("compile", False, "torch.compile the network at start-up (10-30 s, cached on disk by torch): ~1.8x "
               "faster GNN step, worth it for full-resolution models; falls back to eager with a warning"),
 )
@@ -154,7 +157,8 @@ class PredictorNode(Node):
         path = p["checkpoint"] or str(shipped_checkpoint(p["scene"]))
         self.checkpoint_name = path
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
-                                         threads=p["threads"], compile=p["compile"], limits=p["limits"])
+                                         threads=p["threads"], compile=p["compile"], limits=p["limits"],
+                                         rest_relaxation=p["rest_relaxation"])
         if pred.scene.name != p["scene"]:
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "
                              f"(set scene:={pred.scene.name})")

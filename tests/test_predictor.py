@@ -259,3 +259,33 @@ def test_from_checkpoint_data_limits(ckpt):
     assert Predictor.from_checkpoint(ckpt, threads=1)._net.max_deviation is None
     with pytest.raises(InputError, match="limits must be"):
         Predictor.from_checkpoint(ckpt, threads=1, limits="tight")
+
+
+def test_rest_relaxation_pulls_a_released_object_back_to_rest_only_when_the_tool_is_out_of_reach(scene):
+    from colgnn_core.scenes.trajectories import scripted_poses
+
+    rest = scene.object.vertices
+    bent = rest + 2e-3 * np.sin(40.0 * rest[:, [1, 2, 0]])  # a smooth deformation, a few mm
+    dev0 = np.abs(bent - rest).max()
+    held = _pred(scene, "static", correction=False)
+    relaxed = _pred(scene, "static", correction=False, rest_relaxation=0.1)
+    for p in (held, relaxed):
+        p.reset(positions=bent)
+        for _ in range(150):
+            p.step(scene.tool_rest_pose)
+    # the zero-acceleration network keeps the shape; relaxed, it is back at rest (a damped 2nd-order decay)
+    nodes = held.template.object_nodes  # graph nodes (interior vertices are interpolated from them)
+    assert np.abs(held.graph_positions - bent[nodes]).max() < 1e-12
+    # x_{n+1} - rest = (1 - a) (2 (x_n - rest) - (x_{n-1} - rest)): complex roots of modulus sqrt(1 - a)
+    assert np.abs(relaxed.graph_positions - rest[nodes]).max() < 2 * 0.9 ** 75 * dev0
+    assert relaxed.relaxed_steps == 150
+    # in contact (world edges present) nothing is relaxed
+    press = scripted_poses(scene, "press", 40)
+    relaxed.reset()
+    touching = 0
+    for pose in press[1:]:
+        relaxed.step(pose)
+        touching += relaxed._net.world_edges > 0
+    assert touching > 0 and relaxed.relaxed_steps == len(press) - 1 - touching
+    with pytest.raises(InputError, match="rest_relaxation"):
+        _pred(scene, rest_relaxation=1.0)
