@@ -36,9 +36,10 @@ from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses
 from colgnn_core.learn.graph import lift_to_mesh
 
-__all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS"]
+__all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS", "RECOMMENDED_REST_RELAXATION"]
 
 DEFAULT_MAX_SUBSTEPS = 16
+RECOMMENDED_REST_RELAXATION = 0.05  # the ROS node's default (deviation decays as 0.975^steps once the tool is away)
 EASE_PEAK = 1.5            # trajectories.py eases every move with a smoothstep: peak speed 1.5x the mean
 MIN_ROTATION_STEP = math.radians(2.0)  # floor of the per-step rotation limit (families without tilt)
 TRIM_EVERY = 200           # model steps between returns of freed heap memory to the OS (see _release_memory)

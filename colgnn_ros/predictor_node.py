@@ -80,7 +80,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("limits", "data", "cap the network output by its training data's extremes ('data': 2x the largest "
               "per-step motion, 1.5x the largest distance from rest; bounds a long run's drift) or not ('none')",
               choices=("data", "none")),
-    ParamSpec("rest_relaxation", 0.05, "while the tool is out of the network's reach, move the object this fraction "
+    ParamSpec("rest_relaxation", 0.05,  # = predictor.RECOMMENDED_REST_RELAXATION (torch-free import here)
+              "while the tool is out of the network's reach, move the object this fraction "
               "of the way back to its rest shape per step (the objects are elastic; a learned model drifts instead); "
               "0 disables", range=(0.0, 0.99)),
     ParamSpec("compile", False, "torch.compile the network at start-up (10-30 s, cached on disk by torch): ~1.8x "

@@ -93,6 +93,9 @@ def test_parameters_have_descriptors_and_dt_comes_from_the_checkpoint(ros, check
         assert n.dt == fx.scene().dt == n.predictor.loaded.meta.dt
         assert n._timer.timer_period_ns == round(n.dt * 1e9)
         assert n.predictor.correction and n.predictor.max_substeps == 16
+        from colgnn_core.predictor import RECOMMENDED_REST_RELAXATION
+
+        assert n.predictor.rest_relaxation == RECOMMENDED_REST_RELAXATION == n.get_parameter("rest_relaxation").value
     finally:
         n.destroy_node()
 
