@@ -250,33 +250,40 @@ def format_markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def plot_rmse(result: dict, path: Path) -> Path:
-    """RMSE over time (mean ± std band over sequences) per mode, as a PNG (matplotlib, Agg)."""
+def plot_curves(curves: dict[str, tuple], title: str, path: Path, dashed: tuple[str, ...] = ()) -> Path:
+    """RMSE over time as a PNG: ``curves`` maps a label to (mean [T], std [T] or None), fractions of the bbox
+    diagonal (plotted in %, with a ±std band where given); labels in ``dashed`` are drawn dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from colgnn_core.render import save_png
+
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
-    for mode in result["modes"]:
-        curve = result["rows"][mode]["rmse"]["curve"]
-        mean, std = 100 * np.asarray(curve["mean"]), 100 * np.asarray(curve["std"])
+    for label, (mean, std) in curves.items():
+        mean = 100 * np.asarray(mean)
         t = np.arange(len(mean))
-        ax.plot(t, mean, label=ROW_LABELS.get(mode, mode), linestyle="--" if mode == "corrected" else "-")
-        ax.fill_between(t, mean - std, mean + std, alpha=0.25)
+        ax.plot(t, mean, label=label, linestyle="--" if label in dashed else "-")
+        if std is not None:
+            std = 100 * np.asarray(std)
+            ax.fill_between(t, mean - std, mean + std, alpha=0.25)
     ax.set_xlabel("step")
     ax.set_ylabel("RMSE (% of bbox diagonal)")
-    ax.set_title(f"{result['scene']} ({result['resolution']}): rollout error, "
-                 f"{len(result['sequences'])} test sequence(s)")
+    ax.set_title(title)
     ax.set_xlim(left=0)
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    with atomic_write(path, "wb") as fh:
-        fig.savefig(fh, format="png")
-    plt.close(fig)
-    return path
+    ax.legend(fontsize=7)
+    return save_png(fig, path)
+
+
+def plot_rmse(result: dict, path: Path) -> Path:
+    """RMSE over time (mean ± std band over sequences) per mode, as a PNG (matplotlib, Agg)."""
+    curves = {ROW_LABELS.get(m, m): (result["rows"][m]["rmse"]["curve"]["mean"], result["rows"][m]["rmse"]["curve"]["std"])
+              for m in result["modes"]}
+    return plot_curves(curves, f"{result['scene']} ({result['resolution']}): rollout error, "
+                       f"{len(result['sequences'])} test sequence(s)", path, dashed=(ROW_LABELS["corrected"],))
 
 
 def _finite(obj) -> bool:

@@ -26,7 +26,7 @@ import torch
 from colgnn_core.bench import rmse_fraction
 from colgnn_core.collision.metrics import sequence_metrics
 from colgnn_core.errors import InputError
-from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
+from colgnn_core.io import ensure_writable_dir, load_sequence
 
 IPC_SETTINGS: tuple[tuple[str, dict], ...] = (
     ("IPC (data settings)", {}),
@@ -173,6 +173,8 @@ def plot_frontier(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from colgnn_core.render import save_png
+
     style = {"raw": ("o", "tab:orange"), "corrected": ("s", "tab:blue"), "ipc": ("^", "tab:green")}
     fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=110)
     for kind, (marker, color) in style.items():
@@ -189,8 +191,4 @@ def plot_frontier(result: dict, path: Path) -> Path:
     ax.set_title(f"{result['scene']} ({result['resolution']}): speed against error")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path, "wb") as fh:
-        fig.savefig(fh, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path)

@@ -19,6 +19,17 @@ _TOOL_COLOR = (0.55, 0.58, 0.62, 0.35)
 _PENETRATION_COLOR = np.array([0.85, 0.05, 0.05, 1.0])
 
 
+def save_png(fig, path: str | Path) -> Path:
+    """Lay out ``fig``, write it to ``path`` as PNG (atomically) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_write(path, "wb") as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
 def tool_signed_distance(points: np.ndarray, tool_vertices: np.ndarray, tool_faces: np.ndarray) -> np.ndarray:
     """Signed distance [N] (m) of ``points`` [N,3] to a closed tool mesh; negative inside."""
     import trimesh
@@ -170,11 +181,7 @@ def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frame
             _draw_frame(ax, seq, f, scale, limits, f"{label}  t={f}" if label else f"t={f}")
             ax = fig.add_subplot(rows, cols, (2 * r + 1) * cols + c + 1)
             _draw_section(ax, seq, f, plane, window)
-    fig.tight_layout()
-    with atomic_write(out) as fh:
-        fig.savefig(fh, format="png")
-    plt.close(fig)
-    return out
+    return save_png(fig, out)
 
 
 def render_gif(seq: Sequence, out: str | Path, stride: int = 1, fps: int = 10) -> Path:

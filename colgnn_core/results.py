@@ -168,28 +168,12 @@ def pictures(evals_ckpts: dict, scene, data_dir: Path, img_dir: Path, count: int
 
 def plot_errors(scene_name: str, curves: dict[str, dict], path: Path) -> Path:
     """RMSE over time of every row (mean over the test sequences), one PNG."""
-    import matplotlib
+    from colgnn_core.evaluate import plot_curves
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=90)
-    for key, label in ROWS:
-        if key in curves:
-            mean = 100 * np.asarray(curves[key]["mean"])
-            ax.plot(np.arange(len(mean)), mean, label=label, linestyle="--" if key == "full+correction" else "-")
-    ax.set_xlabel("step")
-    ax.set_ylabel("RMSE (% of bbox diagonal)")
-    ax.set_title(f"{scene_name}: rollout error on the test sequences")
-    ax.set_xlim(left=0)
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_write(path, "wb") as fh:
-        fig.savefig(fh, format="png")
-    plt.close(fig)
-    return path
+    labels = dict(ROWS)
+    return plot_curves({labels[k]: (curves[k]["mean"], None) for k, _ in ROWS if k in curves},
+                       f"{scene_name}: rollout error on the test sequences", path,
+                       dashed=(labels["full+correction"],))
 
 
 def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path, *, test_sequences: int,

@@ -147,9 +147,9 @@ def _frontier(report: dict, out: Path) -> list[str]:
 
 def _hard_cases(report: dict) -> list[str]:
     lines = ["## Hard cases", "",
-             "The shipped full model through the Predictor (correction on, output capped by the training data's "
-             "extremes as in the ROS node). Every frame whose step needed a correction, and every frame, is checked "
-             "by ipctk: intersecting = object and tool intersect; crossing = the step's linear motion comes within "
+             "The shipped full model through the Predictor as the ROS node runs it (correction on, output capped by "
+             "the training data's extremes, rest relaxation 0.05). Every published frame and step is checked by "
+             "ipctk: intersecting = object and tool intersect; crossing = the step's linear motion comes within "
              "ipctk's line-search clearance (min(0.2 d0, 1e-4 m)); contact = it really touches.", "",
              "| scene | case | steps | intersecting frames | crossing steps | contact steps | crossings before "
              "correction | fallbacks | finite |", "|---|---|---:|---:|---:|---:|---:|---:|---|"]

@@ -204,9 +204,14 @@ def test_rollout_with_correction_goes_through_the_predictor(scene, ckpt):
     np.testing.assert_array_equal(seq.object_positions[1], raw.object_positions[1])
 
 
-def test_from_checkpoint_needs_a_model(scene):
-    with pytest.raises(InputError, match="no shipped model|no such checkpoint"):
+def test_from_checkpoint_needs_a_model(scene, tmp_path, monkeypatch):
+    import colgnn_core.rollout
+
+    monkeypatch.setattr(colgnn_core.rollout, "MODEL_DIR", tmp_path)  # a package without models
+    with pytest.raises(InputError, match="no shipped model for scene 'knife_torus'"):
         Predictor.from_checkpoint("knife_torus")
+    with pytest.raises(InputError, match="no such checkpoint"):
+        Predictor.from_checkpoint(str(tmp_path / "missing.pt"))
     with pytest.raises(InputError, match="max_substeps"):
         _pred(scene, max_substeps=0)
 
