@@ -159,7 +159,8 @@ def _limits(seqs: list[Sequence], frames: list[int]) -> tuple[np.ndarray, np.nda
     return lo, hi
 
 
-def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None, count: int = 5) -> Path:
+def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None, count: int = 5,
+                 dpi: int = 90) -> Path:
     """Write a PNG grid: per sequence, a row of 3-D views and a row of cross-sections through the contact."""
     import matplotlib
 
@@ -174,7 +175,7 @@ def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frame
     planes = [section_plane(s, frames) for s in seqs]
     window = _section_window(seqs, frames, planes)
     rows, cols = 2 * len(seqs), len(frames)
-    fig = plt.figure(figsize=(2.8 * cols, 2.5 * rows), dpi=90)
+    fig = plt.figure(figsize=(2.8 * cols, 2.5 * rows), dpi=dpi)
     for r, (seq, label, plane) in enumerate(zip(seqs, labels, planes)):
         for c, f in enumerate(frames):
             ax = fig.add_subplot(rows, cols, 2 * r * cols + c + 1, projection="3d")

@@ -42,6 +42,7 @@ VARIANTS = ("subspace", "baseline", "no-compact", "full")
 ROWS = (("ground_truth", "ground truth (IPC)"), ("subspace", "subspace (Holden et al. 2019)"),
         ("baseline", "baseline (MeshGraphNets)"), ("no-compact", "no-compact (ablation)"),
         ("full", "full (paper method)"), ("full+correction", "full + correction (colgnn)"))
+PICTURE_DPI = 60  # the committed strips stay small (~100-150 KB each)
 CROSSING_KEYS = ("N_vf", "d_vf_mean", "d_vf_max", "N_ee", "d_ee_mean", "d_ee_max")
 
 PAPER_HARDWARE = "Intel Xeon E5-2637, 128 GB RAM, GTX 1080 Ti (network on the GPU; IPC on the CPU)"
@@ -159,10 +160,11 @@ def pictures(evals_ckpts: dict, scene, data_dir: Path, img_dir: Path, count: int
         if key in run:
             seqs.append(run[key])
             labels.append(label)
-    files["comparison"] = str(render_strip(seqs, labels, img_dir / f"{scene.name}_comparison.png", count=count))
+    files["comparison"] = str(render_strip(seqs, labels, img_dir / f"{scene.name}_comparison.png", count=count,
+                                                  dpi=PICTURE_DPI))
     if "no-compact" in run:
         files["ablation"] = str(render_strip([run["full"], run["no-compact"]], ["full", "no-compact"],
-                                             img_dir / f"{scene.name}_ablation.png", count=count))
+                                             img_dir / f"{scene.name}_ablation.png", count=count, dpi=PICTURE_DPI))
     return files
 
 
