@@ -66,6 +66,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         jobs=args.jobs,
         shard=args.shard,
         poses=poses,
+        split=args.split,
         progress=not args.quiet,
     )
     done = manifest.get("sequences", {})
@@ -230,7 +231,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("generate", help="simulate ground-truth sequences with the IPC solver")
     p.add_argument("--scene", required=True)
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--sequences", type=_positive, default=20, help="training sequences (default 20)")
+    p.add_argument("--sequences", type=_positive, default=20,
+                   help="training sequences (default 20); with --split test: test sequences")
+    p.add_argument("--split", choices=("both", "train", "test"), default="both",
+                   help="both (default): --sequences training + --test-sequences held-out ones; or only one split")
     p.add_argument("--test-sequences", type=int, default=None, help="held-out test sequences (default: sequences/4, at least 1)")
     p.add_argument("--frames", type=_positive, default=40, help="frames per sequence, rest frame included (default 40)")
     p.add_argument("--jobs", type=_positive, default=1)

@@ -70,3 +70,12 @@ def test_generate_unwritable_output_exits_2(tmp_path, capsys):
     code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(blocker / "o"), "--sequences", "1", "--frames", "2"])
     assert code == 2
     assert "output folder" in capsys.readouterr().err
+
+
+def test_generate_test_split_only(tmp_path, capsys):
+    """`make results` simulates only held-out test sequences: --split test."""
+    out = tmp_path / "d"
+    assert main(["generate", "--scene", "cone_bunny", "--resolution", "ci", "--split", "test", "--sequences", "1",
+                 "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    assert sorted(p.name for p in out.glob("*.npz")) == ["test_0000.npz"]
+    assert "1 sequence(s)" in capsys.readouterr().out
