@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from colgnn_core.errors import InputError
+from colgnn_core.errors import InputError, SimulationError
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -361,6 +361,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         print(f"colgnn {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except SimulationError as exc:  # the solver could not verify a frame; the other sequences were written
+        print(f"colgnn {args.command}: simulation failed: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from colgnn_core.errors import InputError
+from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
 
 VARIANTS = ("subspace", "baseline", "no-compact", "full")
@@ -84,14 +84,25 @@ def machine() -> dict:
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__}
 
 
-def test_data(scene, out_dir: Path, sequences: int, frames: int, jobs: int, progress: bool) -> tuple[Path, int]:
-    """Simulate (or resume) the scene's test sequences; returns the folder and how many were already there."""
+def test_data(scene, out_dir: Path, sequences: int, frames: int, jobs: int, progress: bool) -> tuple[Path, int, str]:
+    """Simulate (or resume) the scene's test sequences.
+
+    Returns the folder, how many sequences were already there, and the solver's failure message ('' if none): a
+    sequence the solver cannot verify (after its spare seeds) is left out, as in training data, and the report
+    says so; with no sequence at all the SimulationError propagates.
+    """
     from colgnn_core.sim.dataset import generate_dataset
 
     already = len(list(Path(out_dir).glob("test_*.npz"))) if Path(out_dir).is_dir() else 0
-    generate_dataset(scene.name, scene.resolution, out_dir, sequences=sequences, frames=frames, jobs=jobs,
-                     split="test", progress=progress)
-    return Path(out_dir), already
+    failed = ""
+    try:
+        generate_dataset(scene.name, scene.resolution, out_dir, sequences=sequences, frames=frames, jobs=jobs,
+                         split="test", progress=progress)
+    except SimulationError as exc:
+        if not list(Path(out_dir).glob("test_*.npz")):
+            raise
+        failed = str(exc)
+    return Path(out_dir), already, failed
 
 
 def speed(loaded, scene, data_dir: Path, threads: int, compile: bool) -> dict:
@@ -192,9 +203,9 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
     loaded = load_model(ckpts["full"])
     scene = load_scene(scene_name, loaded.meta.resolution)
     t0 = time.perf_counter()
-    data_dir, resumed = test_data(scene, data_root / scene_name, test_sequences, frames, jobs, progress)
+    data_dir, resumed, failed = test_data(scene, data_root / scene_name, test_sequences, frames, jobs, progress)
     r: dict = {"scene": scene_name, "resolution": scene.resolution, "data_dir": str(data_dir),
-               "resumed_sequences": resumed, "checkpoints": {v: str(p) for v, p in ckpts.items()},
+               "resumed_sequences": resumed, "solver_failures": failed, "checkpoints": {v: str(p) for v, p in ckpts.items()},
                "test_data_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
     r["speed"] = speed(loaded, scene, data_dir, threads, compile)

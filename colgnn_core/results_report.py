@@ -58,6 +58,10 @@ def _header(report: dict) -> list[str]:
              "`results/<scene>/<variant>/metrics.md` the per-model reports.", ""]
     if skipped:
         lines += ["Not in this report (no shipped model): " + ", ".join(skipped) + ".", ""]
+    failed = [f"`{n}`: {s['solver_failures']}" for n, s in _ok_scenes(report).items() if s.get("solver_failures")]
+    if failed:
+        lines += ["Test trajectories the solver could not verify are left out (as in the training data): "
+                  + "; ".join(failed) + ".", ""]
     return lines
 
 
