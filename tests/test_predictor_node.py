@@ -33,7 +33,7 @@ from visualization_msgs.msg import Marker  # noqa: E402
 from colgnn_core.collision.exact import has_intersections  # noqa: E402
 from colgnn_core.errors import InputError  # noqa: E402
 from colgnn_core.io import load_sequence  # noqa: E402
-from colgnn_core.predictor import Predictor  # noqa: E402
+from colgnn_core.predictor import RECOMMENDED_REST_RELAXATION, Predictor  # noqa: E402
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS  # noqa: E402
 from colgnn_ros.predictor_node import PARAMETERS, REJECT_REASONS, PredictorNode  # noqa: E402
 from msg_tools import (COLLISION_COUNT_LABELS, array_to_pose_stamped, diagnostic_values, msg_to_counts,  # noqa: E402
@@ -70,7 +70,8 @@ def pose_msg(pose, stamp_ns: int, frame_id: str = "world") -> PoseStamped:
 
 
 def local_predictor(checkpoint: str) -> Predictor:
-    return Predictor.from_checkpoint(checkpoint, threads=1, limits="data")  # the node's default limits
+    # the node's defaults: data limits and the recommended rest relaxation
+    return Predictor.from_checkpoint(checkpoint, threads=1, limits="data", rest_relaxation=RECOMMENDED_REST_RELAXATION)
 
 
 def expected_corners(res) -> tuple[np.ndarray, np.ndarray]:
@@ -93,8 +94,6 @@ def test_parameters_have_descriptors_and_dt_comes_from_the_checkpoint(ros, check
         assert n.dt == fx.scene().dt == n.predictor.loaded.meta.dt
         assert n._timer.timer_period_ns == round(n.dt * 1e9)
         assert n.predictor.correction and n.predictor.max_substeps == 16
-        from colgnn_core.predictor import RECOMMENDED_REST_RELAXATION
-
         assert n.predictor.rest_relaxation == RECOMMENDED_REST_RELAXATION == n.get_parameter("rest_relaxation").value
     finally:
         n.destroy_node()
