@@ -124,7 +124,16 @@ def speed(loaded, scene, data_dir: Path, threads: int, compile: bool) -> dict:
             "ipc_ms": _stats(ipc), "raw_ms": _stats(raw), "total_ms": total,
             "graph_ms": _stats(st["graph"]), "gnn_ms": _stats(st["gnn"]), "correction_ms": _stats(st["correction"]),
             "speedup_vs_ipc": float(np.median(ipc) / total["median"]), "steps": len(st["total"]),
+            "load_average_1min": os.getloadavg()[0],
+            "ipc_load_average_1min": _manifest_load(data_dir),
             "threads": pred.threads, "compiled": pred.compiled}
+
+
+def _manifest_load(data_dir: Path) -> float | None:
+    """Largest 1-min load average recorded while the test sequences were simulated (None if not recorded)."""
+    m = json.loads((Path(data_dir) / "manifest.json").read_text())
+    loads = [e["load_average_1min"] for e in m.get("sequences", {}).values() if "load_average_1min" in e]
+    return max(loads) if loads else None
 
 
 def hard_case_report(loaded, scene, frames: int, random_steps: int, threads: int, progress: bool) -> dict:

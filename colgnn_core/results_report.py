@@ -82,6 +82,14 @@ def _table1(report: dict) -> list[str]:
             f"**{sp['total_ms']['median']:.1f}** ({sp['total_ms']['p95']:.1f}) | **{sp['speedup_vs_ipc']:.0f}×** | "
             f"{p.get('vertices', '–')} / {p.get('edges', '–')} / {p.get('faces', '–')} | {p.get('ipc_ms', '–')} | "
             f"{p.get('ms', '–')} | {p.get('speedup', '–')}× |")
+    cores = report["machine"]["cores"] or 1
+    loads = "; ".join(f"{n}: {s['speed']['load_average_1min']:.1f} while timing the Predictor, "
+                      + (f"{s['speed']['ipc_load_average_1min']:.1f}" if s["speed"].get("ipc_load_average_1min")
+                         is not None else "not recorded")
+                      + " while simulating" for n, s in _ok_scenes(report).items() if "load_average_1min" in s["speed"])
+    if loads:
+        lines += ["", f"Load average ({cores} cores; above {cores} the machine was shared and the times are "
+                  f"inflated): {loads}."]
     lines += ["", "Stage medians (ms): " + "; ".join(
         f"{n}: graph {s['speed']['graph_ms']['median']:.1f}, GNN {s['speed']['gnn_ms']['median']:.1f}, "
         f"correction {s['speed']['correction_ms']['median']:.1f}" for n, s in _ok_scenes(report).items()) + ".", ""]

@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing as mp
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -197,6 +198,7 @@ def _run_job(job: _Job) -> dict:
         entry["seed"] = None if seed < 0 else int(seed)
         entry["rejected_seeds"] = rejected
         entry["wall_s"] = time.perf_counter() - t0
+        entry["load_average_1min"] = os.getloadavg()[0]  # a shared machine inflates ms_per_step_median
         return entry
     except (SimulationError, InputError) as exc:
         return {"file": Path(job.file).name, "split": job.split, "seed": job.seed, "error": f"{type(exc).__name__}: {exc}",
