@@ -139,12 +139,10 @@ def _manifest_load(data_dir: Path) -> float | None:
 def hard_case_report(loaded, scene, frames: int, random_steps: int, threads: int, progress: bool) -> dict:
     """Each hard case of :func:`colgnn_core.stability.hard_cases` through the Predictor, checked by ipctk."""
     from colgnn_core.predictor import RECOMMENDED_REST_RELAXATION, Predictor
-    from colgnn_core.rollout import output_limits
     from colgnn_core.stability import check_rollout, hard_cases
 
-    caps = output_limits(loaded, "data")
-    pred = Predictor(loaded, scene, correction=True, threads=threads, max_displacement=caps[0], max_deviation=caps[1],
-                     rest_relaxation=RECOMMENDED_REST_RELAXATION)
+    pred = Predictor.from_checkpoint(loaded, scene=scene, threads=threads, limits="data",
+                                     rest_relaxation=RECOMMENDED_REST_RELAXATION)
     out = {}
     for name, poses in hard_cases(scene, frames, random_steps).items():
         t0 = time.perf_counter()
