@@ -68,6 +68,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         poses=poses,
         split=args.split,
         progress=not args.quiet,
+        retry_failed=args.retry_failed,
     )
     done = manifest.get("sequences", {})
     print(f"{len(done)} sequence(s) in {args.out} (manifest.json)")
@@ -241,6 +242,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N", help="simulate only shard I of N")
     p.add_argument("--resolution", choices=("ci", "full"), default="full")
     p.add_argument("--poses", default=None, help="simulate this poses CSV instead of the scene's family")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="simulate again sequences whose every seed failed in an earlier run (default: skip them)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     handlers["generate"] = cmd_generate
 

@@ -55,7 +55,8 @@ class StepResult:
     surface_vertex_ids [S] are the scene's constant arrays (shared, do not modify);
     tool_vertices [M,3] world, tool_faces [G,3]; tool_pose [7] the (normalised) pose used.
     Counts are summed over the substeps (``*_before``: crossings in the raw network output;
-    ``*_after``: crossings the fast check finds after correction). timings_ms: graph, gnn,
+    ``*_after``: crossings the fast check finds after correction); ``interior_cleared``: interior mesh vertices
+    the lifting had put inside the tool, moved out (published state only). timings_ms: graph, gnn,
     correction, total (ms, summed over substeps).
     """
 
@@ -70,6 +71,7 @@ class StepResult:
     vertex_face_after: int = 0
     edge_edge_after: int = 0
     penetrating_vertices_after: int = 0
+    interior_cleared: int = 0
     correction_iterations: int = 0
     fallback: bool = False
     substeps: int = 1
@@ -322,7 +324,7 @@ class Predictor:
              self.fallbacks) = saved
             raise
         t_lift = time.perf_counter()
-        self._mesh = lift_to_mesh(self.template, self._net.x_t.numpy())
+        self._mesh = self.lift(self._net.x_t.numpy(), res)
         ms["graph"] += 1e3 * (time.perf_counter() - t_lift)  # lifting belongs to the graph bookkeeping
         res.positions = self._mesh
         res.tool_vertices = self._tool_np
@@ -365,6 +367,20 @@ class Predictor:
             self._since_trim = 0
             _release_memory()
 
+    def lift(self, x_graph: np.ndarray, res: StepResult | None = None) -> np.ndarray:
+        """Graph-node positions [N,3] -> every mesh vertex [N_mesh,3] (:func:`lift_to_mesh`); with the correction,
+        interior vertices inside the tool at the current pose are moved out (counted in ``res.interior_cleared``)."""
+        mesh = lift_to_mesh(self.template, x_graph)
+        ids = self.template.interior_ids
+        if self.corrector is not None and ids is not None:
+            inner = mesh[ids]
+            moved = self.corrector.clear_points(inner, self._net.pose)
+            if moved:
+                mesh[ids] = inner
+                if res is not None:
+                    res.interior_cleared += moved
+        return mesh
+
     # -- the rollout loop's stepper interface ---------------------------------------------------------------------
     def stepper(self) -> "PredictorStepper":
         """This predictor behind the rollout loop's Stepper protocol (graph-node positions per step)."""
@@ -392,6 +408,10 @@ class PredictorStepper:
         rec.update({f"{k}_ms": v for k, v in r.timings_ms.items()})
         self.records.append(rec)
         return self.predictor.graph_positions
+
+    def mesh(self, x_graph: np.ndarray) -> np.ndarray:
+        """Every mesh vertex from the graph nodes [N,3], as the Predictor publishes them."""
+        return self.predictor.lift(x_graph)
 
     def extra(self) -> dict[str, np.ndarray]:
         """Per-frame arrays [T] (frame 0 = 0) of the counts and stage timings, for Sequence.extra."""

@@ -43,6 +43,7 @@ ROWS = (("ground_truth", "ground truth (IPC)"), ("subspace", "subspace (Holden e
         ("baseline", "baseline (MeshGraphNets)"), ("no-compact", "no-compact (ablation)"),
         ("full", "full (paper method)"), ("full+correction", "full + correction (colgnn)"))
 PICTURE_DPI = 60  # the committed strips stay small (~100-150 KB each)
+FRONTIER_STEPS = 40  # the issue's frontier: rollout RMSE at 40 steps (the training horizon)
 CROSSING_KEYS = ("N_vf", "d_vf_mean", "d_vf_max", "N_ee", "d_ee_mean", "d_ee_max")
 
 PAPER_HARDWARE = "Intel Xeon E5-2637, 128 GB RAM, GTX 1080 Ti (network on the GPU; IPC on the CPU)"
@@ -106,34 +107,29 @@ def test_data(scene, out_dir: Path, sequences: int, frames: int, jobs: int, prog
 
 
 def speed(loaded, scene, data_dir: Path, threads: int, compile: bool) -> dict:
-    """Table 1 row: the Predictor timed on the first test sequence, the solver's times on all of them."""
+    """Table 1 row: the Predictor and the solver timed on the same poses (the first test sequence), one after
+    the other in this run, so that both see the same machine (the data's own solver times may come from a
+    shared machine)."""
     from colgnn_core.bench import _stats, timed_rollout
     from colgnn_core.evaluate import _test_files
     from colgnn_core.predictor import Predictor
+    from colgnn_core.sim.dataset import simulate_sequence
 
-    files = _test_files(data_dir, scene)
-    first = load_sequence(files[0])
+    first = load_sequence(_test_files(data_dir, scene)[0])
     pred = Predictor(loaded, scene, correction=True, threads=threads, compile=compile)
     timed = timed_rollout(pred, first.tool_poses, first.object_positions[0])
+    load = os.getloadavg()[0]
     st = timed["stages"]
     raw = [t - c for t, c in zip(st["total"], st["correction"])]
-    ipc = np.concatenate([load_sequence(f).extra["step_ms"][1:] for f in files])
+    ipc = simulate_sequence(scene, first.tool_poses).extra["step_ms"][1:]
     total = _stats(st["total"])
     return {"vertices": int(len(scene.object.vertices)), "surface_vertices": int(len(scene.object.surface_vertices)),
             "edges": int(len(scene.object.edges)), "faces": int(len(scene.object.faces)),
             "ipc_ms": _stats(ipc), "raw_ms": _stats(raw), "total_ms": total,
             "graph_ms": _stats(st["graph"]), "gnn_ms": _stats(st["gnn"]), "correction_ms": _stats(st["correction"]),
             "speedup_vs_ipc": float(np.median(ipc) / total["median"]), "steps": len(st["total"]),
-            "load_average_1min": os.getloadavg()[0],
-            "ipc_load_average_1min": _manifest_load(data_dir),
+            "load_average_1min": load, "ipc_load_average_1min": os.getloadavg()[0],
             "threads": pred.threads, "compiled": pred.compiled}
-
-
-def _manifest_load(data_dir: Path) -> float | None:
-    """Largest 1-min load average recorded while the test sequences were simulated (None if not recorded)."""
-    m = json.loads((Path(data_dir) / "manifest.json").read_text())
-    loads = [e["load_average_1min"] for e in m.get("sequences", {}).values() if "load_average_1min" in e]
-    return max(loads) if loads else None
 
 
 def hard_case_report(loaded, scene, frames: int, random_steps: int, threads: int, progress: bool) -> dict:
@@ -245,8 +241,9 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
 
         f = frontier(scene_name, [str(p) for p in front] + [str(ckpts["full"])]
                      + ([str(ckpts["baseline"])] if "baseline" in ckpts else []), data_dir,
-                     out / "results" / scene_name / "frontier", steps=min(r["frames"]) - 1, threads=threads,
-                     compile=compile, progress=progress)
+                     out / "results" / scene_name / "frontier", steps=min(FRONTIER_STEPS, min(r["frames"]) - 1),
+                     max_sequences=test_sequences, ipc_sequences=1, threads=threads, compile=compile,
+                     progress=progress)
         shutil.copyfile(f["files"]["plot"], img / f"{scene_name}_frontier.png")
         r["frontier"] = {"result": {k: v for k, v in f.items() if k != "per_sequence"},
                          "plot": str(img / f"{scene_name}_frontier.png")}

@@ -45,6 +45,8 @@ class Stepper(Protocol):
 
     def step(self, pose_next: np.ndarray) -> np.ndarray: ...
 
+    def mesh(self, x_graph: np.ndarray) -> np.ndarray: ...
+
 
 def shipped_checkpoint(scene_name: str) -> Path:
     """Path of the shipped model for a scene (InputError if there is none)."""
@@ -164,6 +166,10 @@ class RawStepper:
         self.commit(x_next, tool_next, pose_next)
         return x_next.numpy()
 
+    def mesh(self, x_graph: np.ndarray) -> np.ndarray:
+        """Every mesh vertex [N_mesh,3] from the graph nodes [N,3] (:func:`lift_to_mesh`)."""
+        return lift_to_mesh(self.template, x_graph)
+
 
 def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *, scene=None,
             initial_positions: np.ndarray | None = None, limits: str = "none", max_displacement: float | None = None,
@@ -240,7 +246,7 @@ def run_stepper(stepper: Stepper, scene, poses: np.ndarray, initial_positions: n
         x_graph = stepper.step(poses[k])
         step_ms[k] = 1e3 * (time.perf_counter() - t0)
         clamped[k] = getattr(stepper, "clamped", 0)
-        obj[k] = lift_to_mesh(tpl, x_graph)
+        obj[k] = stepper.mesh(x_graph)
         tool[k] = scene.tool.world_vertices(poses[k])
     return Sequence(object_positions=obj, object_faces=np.asarray(scene.object.faces, dtype=np.int64),
                     tool_positions=tool, tool_faces=np.asarray(scene.tool.faces, dtype=np.int64),

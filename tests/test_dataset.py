@@ -129,3 +129,23 @@ def test_failing_sequences_are_replaced_then_reported(tmp_path):
         generate_dataset(SCENE, "ci", tmp_path, sequences=1, frames=3, split="train", progress=False,
                          sim_options={"max_newton": 1}, max_retries=1)
     assert not list(tmp_path.glob("*.npz"))
+    failed = json.loads((tmp_path / "manifest.json").read_text())["failed"]["train_0000.npz"]
+    assert len(failed["job"]["seeds"]) == 2 and len(failed["rejected_seeds"]) == 2
+
+
+def test_a_failed_job_is_remembered_and_not_simulated_again(tmp_path):
+    from colgnn_core.errors import SimulationError
+
+    args = dict(sequences=1, frames=3, split="train", progress=False, sim_options={"max_newton": 1}, max_retries=0)
+    with pytest.raises(SimulationError) as first:
+        generate_dataset(SCENE, "ci", tmp_path, **args)
+    assert "recorded in" not in str(first.value)
+    with pytest.raises(SimulationError, match="recorded in manifest.json"):
+        generate_dataset(SCENE, "ci", tmp_path, **args)          # skipped: same seeds, frames and options
+    with pytest.raises(SimulationError) as again:
+        generate_dataset(SCENE, "ci", tmp_path, retry_failed=True, **args)
+    assert "recorded in" not in str(again.value)
+    # Different settings are a different job: simulated, and its success clears the failure record.
+    generate_dataset(SCENE, "ci", tmp_path, sequences=1, frames=3, split="train", progress=False)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert "failed" not in manifest and "train_0000.npz" in manifest["sequences"]

@@ -294,3 +294,38 @@ def test_rest_relaxation_pulls_a_released_object_back_to_rest_only_when_the_tool
     assert touching > 0 and relaxed.relaxed_steps == len(press) - 1 - touching
     with pytest.raises(InputError, match="rest_relaxation"):
         _pred(scene, rest_relaxation=1.0)
+
+
+def test_interior_vertices_inside_the_tool_are_moved_out_of_the_published_mesh(scene):
+    """A tool deep in the object can hold interior (interpolated) vertices while the surface is clean; the
+    published mesh has none inside, and nothing else moves."""
+    from colgnn_core.geometry.transforms import quat_to_matrix
+    from colgnn_core.learn.graph import lift_to_mesh
+
+    p = _pred(scene, "static")
+    ids = p.template.interior_ids
+    assert ids is not None and len(ids) > 0
+    pose = np.asarray(scene.tool_rest_pose, dtype=np.float64).copy()
+    # the tool's centroid on the deepest interior vertex that keeps the pose in the workspace
+    center = quat_to_matrix(pose[3:]) @ scene.tool.vertices.mean(0)
+    best = 0
+    for v in ids:
+        trial = pose.copy()
+        trial[:3] = scene.object.vertices[v] - center
+        lo_ok = np.all(trial[:3] >= scene.workspace_min) and np.all(trial[:3] <= scene.workspace_max)
+        inside = int((scene.tool.sdf(scene.object.vertices[ids], trial) < 0).sum()) if lo_ok else 0
+        if inside > best:
+            best, deep = inside, trial
+    assert best >= 2
+    p.reset(tool_pose=deep)
+    x_graph = scene.object.vertices[p.template.object_nodes]
+    raw = lift_to_mesh(p.template, x_graph)
+    res = StepResult(positions=raw, surface_faces=p.surface_faces, surface_vertex_ids=p.surface_vertex_ids,
+                     tool_vertices=None, tool_faces=p.tool_faces, tool_pose=deep)
+    mesh = p.lift(x_graph, res)
+    d = scene.tool.sdf(mesh[ids], deep)
+    assert res.interior_cleared == best and d.min() >= 0.999 * p.corrector.margin
+    moved = np.flatnonzero(np.any(mesh != raw, axis=1))
+    assert set(moved) <= set(ids) and len(moved) == best
+    # without the correction the lift is the plain interpolation
+    assert np.array_equal(_pred(scene, "static", correction=False).lift(x_graph), raw)

@@ -21,6 +21,8 @@ def report():
     models = fx.tmp_dir("results_models")
     shutil.copyfile(fx.trained_checkpoint("full"), models / f"{fx.SCENE}.pt")
     shutil.copyfile(fx.trained_checkpoint("baseline"), models / f"{fx.SCENE}_baseline.pt")
+    (models / "frontier" / fx.SCENE).mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(fx.trained_checkpoint("no-compact"), models / "frontier" / fx.SCENE / "other.pt")
     data_root = fx.tmp_dir("results_data")
     # The fixture's test sequence is this command's test data (resumed, not re-simulated).
     shutil.copytree(fx.dataset_dir(), data_root / fx.SCENE, dirs_exist_ok=True)
@@ -48,11 +50,22 @@ def test_report_has_every_table_and_picture(report):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"img/{path.name}" in md
     assert "ablation" not in s["pictures"]  # no no-compact model
-    # the IPC column is the solver's own step times on these sequences
+    # the IPC column: the solver re-run on the poses the Predictor was timed on
     sp = s["speed"]
     assert sp["ipc_ms"]["median"] > 0 and sp["total_ms"]["median"] > 0 and sp["steps"] == fx.FRAMES - 1
     assert abs(sp["speedup_vs_ipc"] - sp["ipc_ms"]["median"] / sp["total_ms"]["median"]) < 1e-9
     assert f"{sp['speedup_vs_ipc']:.0f}×" in md
+
+
+def test_frontier_section_from_the_shipped_frontier_checkpoints(report):
+    rep, out = report
+    f = rep["scenes"][fx.SCENE]["frontier"]["result"]
+    # the frontier checkpoint plus the scene's full and baseline models, raw and corrected; 3 solver settings
+    assert [p["kind"] for p in f["points"]].count("raw") == 3 and [p["kind"] for p in f["points"]].count("ipc") == 3
+    assert f["steps"] == fx.FRAMES - 1 and f["ipc_sequences"] == f["sequences"][:1]
+    assert all(p["crossings"] == 0 and p["intersecting_frames"] == 0 for p in f["points"] if p["kind"] != "raw")
+    md = (out / "RESULTS.md").read_text()
+    assert f"img/{fx.SCENE}_frontier.png" in md and (out / "img" / f"{fx.SCENE}_frontier.png").is_file()
 
 
 def test_reported_reductions_match_the_measured_rows(report):

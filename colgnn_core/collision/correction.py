@@ -223,6 +223,25 @@ class CollisionCorrector:
             x1[idx] += (self.margin + self.mesh_margin - dl)[:, None] * g
         return len(low)
 
+    def clear_points(self, points: np.ndarray, pose: np.ndarray) -> int:
+        """Move points [K,3] (m) that belong to no surface face (a tet mesh's interior vertices) out of the tool at
+        ``pose`` [7]: any point closer than margin (+ mesh bound) goes to that distance along the SDF gradient; in
+        place. Returns the number moved.
+
+        Interior vertices are interpolated from the surface, so a tool deep inside the object can leave one inside
+        the tool while the surface is clean; they take no part in contact, so moving them changes no face."""
+        if len(points) == 0:
+            return 0
+        level = self.margin + self.mesh_margin
+        origin = np.asarray(pose, dtype=np.float64)[:3]
+        near = np.flatnonzero(np.linalg.norm(points - origin, axis=1) - self.tool_radius < level)
+        if len(near) == 0:
+            return 0
+        d, g = self.tool.sdf_grad(points[near], pose)
+        low = d < level
+        points[near[low]] += (level - d[low])[:, None] * g[low]
+        return int(low.sum())
+
     def _proximity(self, x1: np.ndarray, T1: np.ndarray, pose1: np.ndarray, sdf: np.ndarray, lmax: float
                    ) -> tuple[list, list, int]:
         """Pushes for object edges / faces closer than TRIGGER x margin to a tool edge / vertex at t+1.

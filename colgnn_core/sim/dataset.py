@@ -144,6 +144,12 @@ def _options_key(job: _Job) -> str:
     return json.dumps(dict(job.sim_options), sort_keys=True)
 
 
+def _failure_key(job: _Job) -> dict:
+    """What makes a failed family job's outcome reproducible (compared on resume)."""
+    return {"seeds": [int(job.seed), *map(int, job.fallback_seeds)], "frames": int(job.frames),
+            "sim_options": _options_key(job)}
+
+
 def _matches(job: _Job, seq: Sequence, fingerprint: str) -> bool:
     """Was ``seq`` produced by ``job`` (same scene mesh, seed, frames, solver options)?"""
     ex = seq.extra
@@ -201,8 +207,11 @@ def _run_job(job: _Job) -> dict:
         entry["load_average_1min"] = os.getloadavg()[0]  # a shared machine inflates ms_per_step_median
         return entry
     except (SimulationError, InputError) as exc:
-        return {"file": Path(job.file).name, "split": job.split, "seed": job.seed, "error": f"{type(exc).__name__}: {exc}",
-                "rejected_seeds": rejected}
+        entry = {"file": Path(job.file).name, "split": job.split, "seed": job.seed,
+                 "error": f"{type(exc).__name__}: {exc}", "rejected_seeds": rejected}
+        if isinstance(exc, SimulationError) and job.poses is None:
+            entry["job"] = _failure_key(job)  # deterministic: remembered so that a resume does not redo it
+        return entry
 
 
 def _read_manifest(out_dir: Path) -> dict:
@@ -217,12 +226,17 @@ def _read_manifest(out_dir: Path) -> dict:
     return data
 
 
-def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict]) -> None:
-    """Merge ``entries`` into the manifest on disk (other shards may have added theirs) and replace it atomically."""
+def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], failed: dict[str, dict] | None = None) -> None:
+    """Merge ``entries`` (and ``failed`` jobs) into the manifest on disk (other shards may have added theirs) and
+    replace it atomically. A file that now has an entry is dropped from ``failed``."""
     data = _read_manifest(out_dir)
     data.update(header)
     data["sequences"].update(entries)
     data["sequences"] = dict(sorted(data["sequences"].items()))
+    failed = {k: v for k, v in {**data.get("failed", {}), **(failed or {})}.items() if k not in data["sequences"]}
+    data.pop("failed", None)
+    if failed:
+        data["failed"] = dict(sorted(failed.items()))
     with atomic_write(out_dir / MANIFEST, "w") as fh:
         json.dump(data, fh, indent=1)
         fh.write("\n")
@@ -276,6 +290,7 @@ def generate_dataset(
     poses: np.ndarray | None = None,
     sim_options: dict | None = None,
     max_retries: int = 2,
+    retry_failed: bool = False,
 ) -> dict:
     """Simulate a dataset of a scene into ``out_dir``; returns the manifest (dict).
 
@@ -293,6 +308,9 @@ def generate_dataset(
         max_retries: a family sequence whose simulation fails verification is replaced by up to
             this many spare seeds of the same split (listed under ``rejected_seeds`` in the
             manifest); given ``poses`` are never replaced.
+        retry_failed: simulate again jobs whose every seed failed in an earlier run (the manifest's ``failed``
+            section); by default they are skipped and reported as failures again, since the solver is
+            deterministic.
 
     Raises InputError for bad arguments (unknown scene, poses outside the workspace, unwritable
     folder) and SimulationError, after finishing the other sequences, if any sequence failed.
@@ -349,15 +367,20 @@ def generate_dataset(
         )
     done: dict[str, dict] = {}
     todo: list[_Job] = []
+    failures: list[str] = []
     for job in my_jobs:
         ok, entry = _is_done(job, manifest, header["object_fingerprint"])
+        known = manifest.get("failed", {}).get(Path(job.file).name)
         if ok:
             done[Path(job.file).name] = entry
+        elif known is not None and not retry_failed and known.get("job") == _failure_key(job):
+            # Every seed of this job failed verification before; simulating them again gives the same result.
+            failures.append(f"{known['file']}: {known['error']} (recorded in {MANIFEST}; retry_failed / "
+                            "--retry-failed simulates it again)")
         else:
             todo.append(job)
     _write_manifest(out, header, done)
 
-    failures: list[str] = []
     bar = None
     if progress:
         from tqdm import tqdm
@@ -367,6 +390,8 @@ def generate_dataset(
     def record(entry: dict) -> None:
         if "error" in entry:
             failures.append(f"{entry['file']}: {entry['error']}")
+            if "job" in entry:
+                _write_manifest(out, header, {}, {entry["file"]: entry})
         else:
             _write_manifest(out, header, {entry["file"]: entry})
         if bar is not None:
