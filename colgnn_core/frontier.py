@@ -35,10 +35,15 @@ IPC_SETTINGS: tuple[tuple[str, dict], ...] = (
 )
 
 
+def model_size(loaded) -> str:
+    """'latent/message-passing steps/MLP layers' of a GNN checkpoint ('' for models without one)."""
+    m = getattr(loaded.simulator, "config", None)
+    return f"{m.latent}/{m.message_passing_steps}/{m.mlp_layers}" if m is not None else ""
+
+
 def _label(loaded, path) -> str:
-    m = loaded.simulator.config if hasattr(loaded.simulator, "config") else None
-    size = f" {m.latent}/{m.message_passing_steps}/{m.mlp_layers}" if m is not None else ""
-    return f"{loaded.meta.variant}{size} ({Path(str(path)).stem})"
+    size = model_size(loaded)
+    return f"{loaded.meta.variant}{' ' + size if size else ''} ({Path(str(path)).stem})"
 
 
 def _point(label: str, kind: str, seqs: list, truths: list, ms: list[float], diagonal: float, exact: bool) -> dict:

@@ -197,6 +197,7 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
                   progress: bool) -> dict:
     """Everything the report says about one scene (see the module docstring)."""
     from colgnn_core.evaluate import evaluate
+    from colgnn_core.frontier import model_size
     from colgnn_core.rollout import load_model
     from colgnn_core.scenes import load_scene
 
@@ -209,6 +210,7 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
     data_dir, resumed, failed = test_data(scene, data_root / scene_name, test_sequences, frames, jobs, progress)
     r: dict = {"scene": scene_name, "resolution": scene.resolution, "data_dir": str(data_dir),
                "resumed_sequences": resumed, "solver_failures": failed, "checkpoints": {v: str(p) for v, p in ckpts.items()},
+               "model_sizes": {v: model_size(load_model(p)) for v, p in ckpts.items()},
                "test_data_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
     r["speed"] = speed(loaded, scene, data_dir, threads, compile)

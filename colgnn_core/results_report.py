@@ -39,6 +39,12 @@ def _cell(c: dict, key: str, base: dict | None) -> str:
     return text
 
 
+def _sized(label: str, key: str, scene_report: dict) -> str:
+    """Row label with the network size (latent/MP steps/MLP layers) of the row's checkpoint, if it has one."""
+    size = scene_report.get("model_sizes", {}).get(key.replace("+correction", ""), "")
+    return f"{label}, {size}" if size else label
+
+
 def _ok_scenes(report: dict) -> dict:
     return {n: s for n, s in report["scenes"].items() if "skipped" not in s}
 
@@ -113,7 +119,7 @@ def _table2(report: dict) -> list[str]:
                 continue
             c = rows[key]["collisions"]
             ref = base if key not in ("ground_truth", "baseline") else None
-            lines.append(f"| {label} | " + " | ".join(_cell(c, k, ref) for k in CROSSING_KEYS)
+            lines.append(f"| {_sized(label, key, s)} | " + " | ".join(_cell(c, k, ref) for k in CROSSING_KEYS)
                          + f" | {c['intersecting_frames']}/{c['frames']} |")
         paper = PAPER_TABLE2.get(name)
         if paper:
@@ -134,7 +140,7 @@ def _accuracy(report: dict, out: Path) -> list[str]:
             if key == "ground_truth" or key not in s["rows"]:
                 continue
             r = s["rows"][key]["rmse"]
-            lines.append(f"| {label} | {_pm(r['step_1'])} | {_pm(r['step_10'])} | {_pm(r['step_50'])} | "
+            lines.append(f"| {_sized(label, key, s)} | {_pm(r['step_1'])} | {_pm(r['step_10'])} | {_pm(r['step_50'])} | "
                          f"{_pm(r['all'])} |")
         lines += ["", f"![{name} error over time]({_rel(s['pictures']['errors'], out)})", ""]
     return lines

@@ -44,6 +44,10 @@ def test_report_has_every_table_and_picture(report):
     assert s["resumed_sequences"] == 1 and "1 sequence(s) resumed" in md
     assert set(s["rows"]) == {"ground_truth", "baseline", "full", "full+correction"}
     assert "| subspace (Holden et al. 2019) | not shipped |" in md and "| no-compact (ablation) | not shipped |" in md
+    # rows name their network size (the fixture's tiny model)
+    size = "{latent}/{message_passing_steps}/{mlp_layers}".format(**fx.TINY_MODEL)
+    assert s["model_sizes"] == {"full": size, "baseline": size}
+    assert f"| full + correction (colgnn), {size} |" in md and f"| baseline (MeshGraphNets), {size} |" in md
     assert data["scenes"]["sphere_mat"]["skipped"].startswith("no shipped full model")
     for key in ("errors", "comparison"):
         path = out / "img" / f"{fx.SCENE}_{'rmse' if key == 'errors' else key}.png"
