@@ -40,6 +40,11 @@ __all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS"
 
 DEFAULT_MAX_SUBSTEPS = 16
 RECOMMENDED_REST_RELAXATION = 0.05  # the ROS node's default (deviation decays as 0.975^steps once the tool is away)
+# After this many consecutive model steps without a world edge the relaxation rate ramps linearly from
+# ``rest_relaxation`` to 1 over SETTLE_RAMP_STEPS more: a released elastic object is at rest a few seconds later,
+# whatever the network's own (distribution-shifted) dynamics would do there.
+SETTLE_AFTER_STEPS = 50
+SETTLE_RAMP_STEPS = 100
 EASE_PEAK = 1.5            # trajectories.py eases every move with a smoothstep: peak speed 1.5x the mean
 MIN_ROTATION_STEP = math.radians(2.0)  # floor of the per-step rotation limit (families without tilt)
 TRIM_EVERY = 200           # model steps between returns of freed heap memory to the OS (see _release_memory)
@@ -163,8 +168,11 @@ class Predictor:
         rest_relaxation: fraction ``a`` of the way back to the rest shape the network's output moves in a step
             in which the tool is out of the network's reach (no world edge): ``x <- x + a (rest - x)``. The
             scenes' objects are elastic, so once released they return to rest; a learned model drifts instead
-            (a few % of the bbox diagonal after thousands of steps), and this pulls it back. 0 (default): off.
-            GNN models only; applied before the correction, so the guarantee is unchanged.
+            (a few % of the bbox diagonal after thousands of steps), and this pulls it back. Once the tool has
+            been out of reach for ``SETTLE_AFTER_STEPS`` model steps the rate ramps to 1 over
+            ``SETTLE_RAMP_STEPS`` (a distorted network state can hold a deformation against a constant small
+            rate: x* - rest = network acceleration / a). 0 (default): off. GNN models only; applied before
+            the correction, so the guarantee is unchanged.
     """
 
     def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
@@ -188,6 +196,7 @@ class Predictor:
         self.correction = bool(correction)
         self.rest_relaxation = float(rest_relaxation)
         self.relaxed_steps = 0  # model steps relaxed towards rest since reset
+        self.free_steps = 0     # consecutive model steps without a world edge (the settle ramp's clock)
         self.max_substeps = int(max_substeps)
         self.threads = torch.get_num_threads()
         self.max_translation, self.max_rotation = (tool_step_limits(scene, loaded.extra) if step_limits is None
@@ -263,6 +272,7 @@ class Predictor:
         self.steps = 0
         self.fallbacks = 0
         self.relaxed_steps = 0
+        self.free_steps = 0
 
     @property
     def tool_pose(self) -> np.ndarray:
@@ -314,14 +324,15 @@ class Predictor:
                          tool_pose=pose, substeps=n)
         ms = {"graph": 0.0, "gnn": 0.0, "correction": 0.0}
         net = self._net
-        saved = (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps, self.fallbacks)
+        saved = (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps, self.fallbacks,
+                 self.relaxed_steps, self.free_steps)
         try:
             for sp in subposes:
                 self._model_step(sp, res, ms)
         except BaseException:
             # A failure inside a model step (e.g. non-finite network output) leaves the state as it was.
             (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps,
-             self.fallbacks) = saved
+             self.fallbacks, self.relaxed_steps, self.free_steps) = saved
             raise
         t_lift = time.perf_counter()
         self._mesh = self.lift(self._net.x_t.numpy(), res)
@@ -339,8 +350,9 @@ class Predictor:
         x_raw = net.propose(pose_next, tool_next)
         ms["graph"] += net.last_ms["graph"]
         ms["gnn"] += net.last_ms["gnn"]
+        self.free_steps = self.free_steps + 1 if net.world_edges == 0 else 0
         if self.rest_relaxation and net.world_edges == 0:
-            x_raw = x_raw + self.rest_relaxation * (net.rest - x_raw)
+            x_raw = x_raw + self.relaxation_rate() * (net.rest - x_raw)
             self.relaxed_steps += 1
         if self.corrector is not None:
             t = time.perf_counter()
@@ -366,6 +378,14 @@ class Predictor:
         if self._since_trim >= TRIM_EVERY:
             self._since_trim = 0
             _release_memory()
+
+    def relaxation_rate(self) -> float:
+        """This step's rest-relaxation fraction: ``rest_relaxation``, ramping to 1 once the tool has been out of
+        reach for ``SETTLE_AFTER_STEPS`` model steps (0 when the relaxation is off)."""
+        if not self.rest_relaxation:
+            return 0.0
+        ramp = min(1.0, max(0.0, (self.free_steps - SETTLE_AFTER_STEPS) / SETTLE_RAMP_STEPS))
+        return self.rest_relaxation + (1.0 - self.rest_relaxation) * ramp
 
     def lift(self, x_graph: np.ndarray, res: StepResult | None = None) -> np.ndarray:
         """Graph-node positions [N,3] -> every mesh vertex [N_mesh,3] (:func:`lift_to_mesh`); with the correction,
