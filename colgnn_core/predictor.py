@@ -166,7 +166,8 @@ class Predictor:
             compiled here, before the first step (seconds; cached on disk by torch), and falls back to
             eager with a warning where compiling is impossible. GNN models only.
         rest_relaxation: fraction ``a`` of the way back to the rest shape the network's output moves in a step
-            in which the tool is out of the network's reach (no world edge): ``x <- x + a (rest - x)``. The
+            in which the tool is out of the network's reach (no world edge, or a static tool out of reach of the
+            rest shape): ``x <- x + a (rest - x)``. The
             scenes' objects are elastic, so once released they return to rest; a learned model drifts instead
             (a few % of the bbox diagonal after thousands of steps), and this pulls it back. Once the tool has
             been out of reach for ``SETTLE_AFTER_STEPS`` model steps the rate ramps to 1 over
@@ -196,7 +197,8 @@ class Predictor:
         self.correction = bool(correction)
         self.rest_relaxation = float(rest_relaxation)
         self.relaxed_steps = 0  # model steps relaxed towards rest since reset
-        self.free_steps = 0     # consecutive model steps without a world edge (the settle ramp's clock)
+        self.free_steps = 0     # consecutive released model steps (the settle ramp's clock; see _released)
+        self._rest_tree = None  # k-d tree of the rest graph nodes (built on first need)
         self.max_substeps = int(max_substeps)
         self.threads = torch.get_num_threads()
         self.max_translation, self.max_rotation = (tool_step_limits(scene, loaded.extra) if step_limits is None
@@ -350,8 +352,9 @@ class Predictor:
         x_raw = net.propose(pose_next, tool_next)
         ms["graph"] += net.last_ms["graph"]
         ms["gnn"] += net.last_ms["gnn"]
-        self.free_steps = self.free_steps + 1 if net.world_edges == 0 else 0
-        if self.rest_relaxation and net.world_edges == 0:
+        released = bool(self.rest_relaxation) and self._released(pose_next, tool_next_np)
+        self.free_steps = self.free_steps + 1 if released else 0
+        if self.rest_relaxation and released:
             x_raw = x_raw + self.relaxation_rate() * (net.rest - x_raw)
             self.relaxed_steps += 1
         if self.corrector is not None:
@@ -378,6 +381,22 @@ class Predictor:
         if self._since_trim >= TRIM_EVERY:
             self._since_trim = 0
             _release_memory()
+
+    def _released(self, pose_next: np.ndarray, tool_next: np.ndarray) -> bool:
+        """Is the object free of the tool this model step? Yes when the graph has no world edge, and also when a
+        *static* tool is out of reach of the object's *rest* shape: a distorted learned state can keep brushing
+        a tool that has left (world edges flickering on and off), which is not contact an elastic object keeps."""
+        net = self._net
+        if net.world_edges == 0:
+            return True
+        if net.world_edges is None or not np.array_equal(pose_next, net.pose):
+            return False
+        if self._rest_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._rest_tree = cKDTree(net.rest.numpy())
+        d, _ = self._rest_tree.query(tool_next, distance_upper_bound=self.template.world_radius)
+        return bool(np.isinf(d).all())
 
     def relaxation_rate(self) -> float:
         """This step's rest-relaxation fraction: ``rest_relaxation``, ramping to 1 once the tool has been out of

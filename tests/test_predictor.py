@@ -282,7 +282,7 @@ def test_rest_relaxation_pulls_a_released_object_back_to_rest_only_when_the_tool
     # the zero-acceleration network keeps the shape; relaxed, it is back at rest
     nodes = held.template.object_nodes  # graph nodes (interior vertices are interpolated from them)
     assert np.abs(held.graph_positions - bent[nodes]).max() < 1e-12
-    assert held.relaxation_rate() == 0.0 and held.free_steps == 150
+    assert held.relaxation_rate() == 0.0 and held.relaxed_steps == 0
     # after 150 free steps the settle ramp has reached 1: exactly the rest shape
     assert SETTLE_AFTER_STEPS + SETTLE_RAMP_STEPS <= 150 and relaxed.relaxation_rate() == 1.0
     assert np.abs(relaxed.graph_positions - rest[nodes]).max() < 1e-12
@@ -341,3 +341,29 @@ def test_interior_vertices_inside_the_tool_are_moved_out_of_the_published_mesh(s
     assert set(moved) <= set(ids) and len(moved) == best
     # without the correction the lift is the plain interpolation
     assert np.array_equal(_pred(scene, "static", correction=False).lift(x_graph), raw)
+
+
+def test_a_static_tool_out_of_reach_of_the_rest_shape_releases_the_object(scene):
+    """World edges to a tool that has left (a displaced object brushing it) do not stop the return to rest while
+    the tool stands still out of reach of the rest shape; a moving tool there does."""
+    p = _pred(scene, "static", correction=False, rest_relaxation=0.1)
+    rest = scene.object.vertices
+    nodes = p.template.object_nodes
+    tool = scene.tool.world_vertices(scene.tool_rest_pose)
+    d = np.linalg.norm(rest[nodes][:, None, :] - tool[None, :, :], axis=2)
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    assert d[i, j] > p.template.world_radius  # at rest the tool is out of reach
+    # shift the object until its closest node is half a world radius from the tool
+    shift = (tool[j] - rest[nodes][i]) * (1 - 0.5 * p.template.world_radius / d[i, j])
+    p.reset(positions=rest + shift)
+    p.step(scene.tool_rest_pose)
+    assert p._net.world_edges > 0 and p.relaxed_steps == 1   # in reach of the shifted object, yet released
+    for _ in range(SETTLE_AFTER_STEPS + SETTLE_RAMP_STEPS):
+        p.step(scene.tool_rest_pose)
+    assert np.abs(p.graph_positions - rest[nodes]).max() < 1e-12
+    moving = _pred(scene, "static", correction=False, rest_relaxation=0.1)
+    moving.reset(positions=rest + shift)
+    pose = np.asarray(scene.tool_rest_pose, dtype=np.float64).copy()
+    pose[:3] += 1e-4 * np.sign(shift)  # a small move, the object still in reach
+    moving.step(pose)
+    assert moving._net.world_edges > 0 and moving.relaxed_steps == 0
