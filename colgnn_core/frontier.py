@@ -38,7 +38,9 @@ IPC_SETTINGS: tuple[tuple[str, dict], ...] = (
 def model_size(loaded) -> str:
     """'latent/message-passing steps/MLP layers' of a GNN checkpoint ('' for models without one)."""
     m = getattr(loaded.simulator, "config", None)
-    return f"{m.latent}/{m.message_passing_steps}/{m.mlp_layers}" if m is not None else ""
+    if not all(hasattr(m, k) for k in ("latent", "message_passing_steps", "mlp_layers")):
+        return ""  # the subspace model has no graph network
+    return f"{m.latent}/{m.message_passing_steps}/{m.mlp_layers}"
 
 
 def _label(loaded, path) -> str:
