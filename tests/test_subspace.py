@@ -31,6 +31,9 @@ def test_subspace_trains_saves_loads_and_rolls_out(tmp_path):
     assert read_checkpoint(tmp_path / "s.pt")["kind"] == "subspace"
     loaded = load_checkpoint(tmp_path / "s.pt", scene)
     assert isinstance(loaded.simulator, SubspaceModel) and loaded.meta.variant == "subspace"
+    from colgnn_core.frontier import model_size
+
+    assert model_size(loaded) == ""  # no graph network: the results report labels the row without a size
     gt = load_sequence(sorted(fx.dataset_dir().glob("test_*.npz"))[0])
     seq = rollout(tmp_path / "s.pt", gt.tool_poses, scene=scene)
     assert seq.object_positions.shape == gt.object_positions.shape and np.isfinite(seq.object_positions).all()
