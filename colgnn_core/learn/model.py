@@ -210,10 +210,21 @@ class Simulator(nn.Module):
         return self.training_outputs(frame, x_next, **kwargs)
 
 
+COMPILED_VARIANTS_LIMIT = 256  # compiled variants of the network per process (~3 per compiled Simulator)
+
+
 class _CompiledOrEager:
     """A compiled function that falls back, once and for good, to its eager original on any failure."""
 
     def __init__(self, fn) -> None:
+        import torch._dynamo
+
+        # Every Simulator's bound core_outputs shares one code object, and dynamo caps the compiled variants of a
+        # code object (8 by default; each network needs ~3): past it, later networks in the same process silently
+        # ran eagerly (~1.8x slower), which inflated timings of processes that compile many models.
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, COMPILED_VARIANTS_LIMIT)
+        torch._dynamo.config.accumulated_recompile_limit = max(
+            torch._dynamo.config.accumulated_recompile_limit, 4 * COMPILED_VARIANTS_LIMIT)
         self.eager = fn
         self.compiled = torch.compile(fn, dynamic=True)
         self.failure: Exception | None = None
