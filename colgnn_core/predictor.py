@@ -449,8 +449,9 @@ class PredictorStepper:
         return self.predictor.graph_positions
 
     def mesh(self, x_graph: np.ndarray) -> np.ndarray:
-        """Every mesh vertex from the graph nodes [N,3], as the Predictor publishes them."""
-        return self.predictor.lift(x_graph)
+        """Every mesh vertex [N_mesh,3] as the Predictor published them for ``x_graph``, the graph positions the
+        last ``step`` returned (already lifted there: not computed twice)."""
+        return self.predictor.positions
 
     def extra(self) -> dict[str, np.ndarray]:
         """Per-frame arrays [T] (frame 0 = 0) of the counts and stage timings, for Sequence.extra."""
