@@ -354,7 +354,7 @@ class Predictor:
         ms["gnn"] += net.last_ms["gnn"]
         released = bool(self.rest_relaxation) and self._released(pose_next, tool_next_np)
         self.free_steps = self.free_steps + 1 if released else 0
-        if self.rest_relaxation and released:
+        if released:
             x_raw = x_raw + self.relaxation_rate() * (net.rest - x_raw)
             self.relaxed_steps += 1
         if self.corrector is not None:
