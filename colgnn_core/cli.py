@@ -17,14 +17,13 @@ Handler = Callable[[argparse.Namespace], int]
 
 
 def _shard(text: str) -> tuple[int, int]:
-    """Parse ``I/N`` (0 ≤ I < N)."""
+    """Parse ``I/N`` (0 ≤ I < N) for argparse; the rule lives in ``sim.dataset.parse_shard``."""
+    from colgnn_core.sim.dataset import parse_shard
+
     try:
-        i, n = (int(v) for v in text.split("/"))
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"shard must look like I/N, got {text!r}") from exc
-    if not (n >= 1 and 0 <= i < n):
-        raise argparse.ArgumentTypeError(f"shard I/N needs 0 <= I < N, got {text!r}")
-    return i, n
+        return parse_shard(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _positive(text: str) -> int:

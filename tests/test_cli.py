@@ -41,6 +41,14 @@ def test_module_entry_point_exit_code():
     assert "missing.npz" in proc.stderr
 
 
+def test_generate_bad_shard_exits_2_with_the_rule(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--shard", "3/2"])
+    assert exc.value.code == 2
+    assert "0 <= I < N" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize(
     "body, message",
     [
