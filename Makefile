@@ -32,7 +32,7 @@ demo: setup
 	$(VPY) -m colgnn_ros.demo --scene sphere_mat --out out/demo
 
 # docs/RESULTS.md, docs/results.json and docs/img/: every table and picture, from the shipped checkpoints and
-# test data simulated on this machine (data/results, resumable). About 45 min on an idle 2-core machine (stated in the report).
+# test data simulated on this machine (data/results, resumable). About 55 min on an idle 2-core machine, 35 min with the test data already simulated (stated in the report).
 results: setup
 	$(VPY) -m colgnn_core evaluate --all --out docs --compile --threads 2
 
