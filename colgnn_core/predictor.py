@@ -40,7 +40,7 @@ __all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS"
 
 DEFAULT_MAX_SUBSTEPS = 16
 RECOMMENDED_REST_RELAXATION = 0.05  # the ROS node's default (deviation decays as 0.975^steps once the tool is away)
-# After this many consecutive model steps without a world edge the relaxation rate ramps linearly from
+# After this many consecutive released model steps (see Predictor._released) the relaxation rate ramps linearly from
 # ``rest_relaxation`` to 1 over SETTLE_RAMP_STEPS more: a released elastic object is at rest a few seconds later,
 # whatever the network's own (distribution-shifted) dynamics would do there.
 SETTLE_AFTER_STEPS = 50
