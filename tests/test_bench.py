@@ -5,8 +5,9 @@ import math
 
 import pytest
 
-import _train_fixtures as fx
-from colgnn_core.bench import bench, format_bench, rmse_fraction
+from tests.helpers import train_data as fx
+from colgnn_core.evaluation.measure import rmse_fraction
+from colgnn_core.evaluation.speed import bench, format_bench
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
 

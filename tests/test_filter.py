@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-import collision_cases as cc
+from tests.helpers import collision_cases as cc
 from colgnn_core.collision import exact
 from colgnn_core.collision.filter import (bernstein_coefficients, filter_edge_edge, filter_edge_edge_torch,
                                           filter_vertex_face, filter_vertex_face_torch)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from _learn_fixtures import box_and_sphere, box_tet_mesh, sphere_points, sphere_sdf
+from tests.helpers.learn_meshes import box_and_sphere, box_tet_mesh, sphere_points, sphere_sdf
 from colgnn_core.learn.graph import (NODE_OBJECT, NODE_PINNED, NODE_TOOL, build_graph, face_edges, find_world_edges,
                                      lift_to_mesh, make_template, tet_edges)
 

@@ -74,7 +74,7 @@ def random_mesh(rng: np.random.Generator, n: int, f: int) -> tuple[np.ndarray, n
 
 # ----------------------------------------------------------------------------- ROS fixtures
 
-from rostest_utils import node, ros, spin_until  # noqa: E402,F401  (pytest fixtures, shared with the colgnn_ros tests)
+from tests.helpers.ros import spin_until  # noqa: E402
 
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)

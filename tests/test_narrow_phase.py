@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-import collision_cases as cc
+from tests.helpers import collision_cases as cc
 from colgnn_core.collision import exact
 from colgnn_core.collision.narrow_phase import (cubic_roots_01, edge_edge_depth_torch, edge_edge_narrow,
                                                 sdf_depth_torch, vertex_face_depth_torch, vertex_face_narrow)

@@ -1,7 +1,7 @@
 """`pose_publisher` on real rclpy + Fast DDS: parameters, poses through DDS, rate, loop, signals.
 
 The node runs in its own process (``python -m colgnn_ros.pose_publisher_node``), reached only
-through DDS on an isolated domain (see rostest_utils); the parameter checks also run in-process.
+through DDS on an isolated domain (the ``ros`` fixture, tests/conftest.py); the parameter checks also run in-process.
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import finish, node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+pytest.importorskip("rclpy")
+
+from tests.helpers.ros import finish, ros_env, spin_until  # noqa: E402
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402

@@ -27,13 +27,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+pytest.importorskip("rclpy")
+
+from tests.helpers.ros import ros_env, spin_until  # noqa: E402
 
 pytest.importorskip("colcon_core")
 if shutil.which("bash") is None:
     pytest.skip("needs bash to source the colcon setup script", allow_module_level=True)
 
-import _train_fixtures as fx  # noqa: E402
+from tests.helpers import train_data as fx  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402

@@ -431,11 +431,11 @@ class IPCSimulator:
         0.9·c0 on [0, alpha] are skipped; the rest are sampled at 64 points.
         """
         el = self.elastic
-        a = el._edge_matrix(x[: self.n_obj])
-        b = el._edge_matrix(p[: self.n_obj])
+        a = el.edge_matrix(x[: self.n_obj])
+        b = el.edge_matrix(p[: self.n_obj])
         c0 = np.linalg.det(a)
-        c1 = np.einsum("kij,kij->k", el._cofactor(a), b)
-        c2 = np.einsum("kij,kij->k", el._cofactor(b), a)
+        c1 = np.einsum("kij,kij->k", el.cofactor(a), b)
+        c2 = np.einsum("kij,kij->k", el.cofactor(b), a)
         c3 = np.linalg.det(b)
         bound = (np.abs(c1) + (np.abs(c2) + np.abs(c3) * alpha) * alpha) * alpha
         risky = bound >= 0.9 * c0
@@ -494,7 +494,7 @@ class IPCSimulator:
                     return p
             except (ValueError, RuntimeError):
                 pass
-        import scipy.sparse.linalg as spla
+        import scipy.sparse.linalg as spla  # lazy: the fallback solver, only without cholespy or when it fails
 
         p[idx] = spla.spsolve(hf.tocsc(), r)
         return p
