@@ -33,11 +33,6 @@ class Material:
     poisson_ratio: float  # -
     density: float  # kg/m^3
 
-    def lame(self) -> tuple[float, float]:
-        """Lamé parameters (mu, lambda) in Pa."""
-        e, nu = self.youngs_modulus, self.poisson_ratio
-        return e / (2 * (1 + nu)), e * nu / ((1 + nu) * (1 - 2 * nu))
-
 
 @dataclass
 class Scene:
@@ -101,7 +96,7 @@ class Scene:
         return out
 
     def to_json(self) -> dict[str, Any]:
-        """The `colgnn scenes --json` record (ARCHITECTURE.md contract) plus a few counts."""
+        """The `colgnn scenes --json` record (docs/ARCHITECTURE.md, "Contracts") plus a few counts."""
         lo, hi = self.object_bbox()
         return {
             "name": self.name,

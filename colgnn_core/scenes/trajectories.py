@@ -143,7 +143,6 @@ def _horizontal_tool_x(quat: np.ndarray) -> np.ndarray:
 
 def _stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> None:
     fam = scene.family
-    q_rest = scene.tool_rest_pose[3:]
     r = float(fam.get("target_jitter", 0.0)) * np.sqrt(rng.uniform())
     phi = rng.uniform(0, 2 * np.pi)
     xy = np.asarray(fam["target_xy"], dtype=np.float64) + r * np.array([np.cos(phi), np.sin(phi)])
