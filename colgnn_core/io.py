@@ -24,6 +24,7 @@ from typing import Iterator
 import numpy as np
 
 from colgnn_core.errors import InputError
+from colgnn_core.geometry.transforms import validate_pose
 
 POSE_COLUMNS = ("t", "px", "py", "pz", "qx", "qy", "qz", "qw")
 _UMASK = os.umask(0)
@@ -187,8 +188,6 @@ def read_poses_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     bad = ~np.all(np.isfinite(table), axis=1)
     if bad.any():
         raise InputError(f"{path}:{int(np.argmax(bad)) + 2}: NaN or inf value")
-    from colgnn_core.geometry.transforms import validate_pose
-
     poses = np.empty((len(table), 7))
     for i, row in enumerate(table):
         try:

@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         src = load_msh(args.surface)
         vertices, faces = src.vertices, src.faces
     else:
-        import trimesh
+        import trimesh  # lazy: trimesh is slow to import and only mesh files need it
 
         surf = trimesh.load(args.surface, process=False, force="mesh")
         vertices, faces = np.asarray(surf.vertices), np.asarray(surf.faces)

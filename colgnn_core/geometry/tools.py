@@ -56,7 +56,7 @@ def _is_torch(x: Any) -> bool:
 
 def _sqrt(x):
     if _is_torch(x):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.sqrt(x + _EPS2)
     return np.sqrt(x + _EPS2)
@@ -72,7 +72,7 @@ def _negpart(x):
 
 def _maximum(a, b):
     if _is_torch(a):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.maximum(a, b)
     return np.maximum(a, b)
@@ -80,7 +80,7 @@ def _maximum(a, b):
 
 def _minimum(a, b):
     if _is_torch(a):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.minimum(a, b)
     return np.minimum(a, b)
@@ -88,7 +88,7 @@ def _minimum(a, b):
 
 def _where(c, a, b):
     if _is_torch(a):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.where(c, a, b)
     return np.where(c, a, b)
@@ -294,7 +294,7 @@ def tool_sdf_local(shape: str, params: dict[str, float], p):
 
 def quat_to_matrix_torch(q):
     """Unit quaternions [...,4] (xyzw) tensor to rotation matrices [...,3,3], differentiable."""
-    import torch
+    import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
     x, y, z, w = q.unbind(-1)
     rows = [
@@ -338,7 +338,7 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _mesh_sphere(radius: float, subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
+    import trimesh  # lazy: trimesh is slow to import and only the sphere tool's mesh needs it
 
     m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
@@ -458,7 +458,7 @@ class Tool:
         Gradients flow to ``points`` and to ``pose`` (the quaternion is used as
         given; pass a unit quaternion).
         """
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         pose = torch.as_tensor(pose, dtype=points.dtype, device=points.device)
         r = quat_to_matrix_torch(pose[3:])
