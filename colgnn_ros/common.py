@@ -1,6 +1,6 @@
 """What the colgnn_ros nodes share: QoS profiles, parameters, and the process shell.
 
-- QoS (ARCHITECTURE.md, real-time path): tool poses are best-effort with depth 1 (only the newest
+- QoS (docs/ARCHITECTURE.md, "Real-time path"): tool poses are best-effort with depth 1 (only the newest
   pose matters, a late pose is worthless); outputs (markers, counts, diagnostics) are reliable, as
   RViz subscribes to markers.
 - Parameters are described once as :class:`ParamSpec` rows, declared with rcl_interfaces
