@@ -55,8 +55,8 @@ def cmd_scenes(args: argparse.Namespace) -> int:
     print(f"{'scene':<16} {'tool':<9} {'vertices':>8} {'faces':>7}  {'dt':>5}  bbox (m)")
     for r in rows:
         size = [hi - lo for lo, hi in zip(r["object_bbox_min"], r["object_bbox_max"])]
-        print(f"{r['name']:<16} {r['tool_shape']:<9} {r['object_vertices']:>8} {r['object_faces']:>7}  {r['dt']:>5.3f}  "
-              + " x ".join(f"{s:.3f}" for s in size))
+        print(f"{r['name']:<16} {r['tool_shape']:<9} {r['object_vertices']:>8} {r['object_faces']:>7}  "
+              f"{r['dt']:>5.3f}  " + " x ".join(f"{s:.3f}" for s in size))
     return 0
 
 
@@ -165,7 +165,8 @@ def _model_size(text: str) -> tuple[int, int, int]:
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"model size must look like LATENT/STEPS/LAYERS, got {text!r}") from exc
     if len(values) != 3 or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"model size must be three positive integers LATENT/STEPS/LAYERS, got {text!r}")
+        raise argparse.ArgumentTypeError("model size must be three positive integers LATENT/STEPS/LAYERS, got "
+                                         f"{text!r}")
     return values
 
 
@@ -212,7 +213,8 @@ def _add_generate(sub) -> None:
                    help="training sequences (default 20); with --split test: test sequences")
     p.add_argument("--split", choices=("both", "train", "test"), default="both",
                    help="both (default): --sequences training + --test-sequences held-out ones; or only one split")
-    p.add_argument("--test-sequences", type=int, default=None, help="held-out test sequences (default: sequences/4, at least 1)")
+    p.add_argument("--test-sequences", type=int, default=None,
+                   help="held-out test sequences (default: sequences/4, at least 1)")
     p.add_argument("--frames", type=_positive, default=40, help="frames per sequence, rest frame included (default 40)")
     p.add_argument("--jobs", type=_positive, default=1)
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N", help="simulate only shard I of N")
@@ -235,9 +237,12 @@ def _add_train(sub) -> None:
                    help="graph nodes: surface vertices only, or every tet-mesh vertex (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=_positive, default=None, help="torch threads")
-    p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M", help="latent/message-passing steps/MLP layers")
-    p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None, help="reduction of L_ccd (paper: max)")
-    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS", help="stop (with a checkpoint) after this long")
+    p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M",
+                   help="latent/message-passing steps/MLP layers")
+    p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None,
+                   help="reduction of L_ccd (paper: max)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="stop (with a checkpoint) after this long")
     p.add_argument("--resolution", choices=("ci", "full"), default=None, help="default: from the dataset manifest")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -249,7 +254,8 @@ def _add_rollout(sub) -> None:
     src.add_argument("--scene", help="use the shipped model of this scene")
     p.add_argument("--poses", required=True, help="CSV with t,px,py,pz,qx,qy,qz,qw")
     p.add_argument("--out", required=True, help="rollout .npz")
-    p.add_argument("--no-correction", action="store_true", help="the raw network, without the collision-aware correction")
+    p.add_argument("--no-correction", action="store_true",
+                   help="the raw network, without the collision-aware correction")
     p.add_argument("--limits", choices=("none", "data"), default="none",
                    help="'data': cap per-step motion and distance from rest by the training data's extremes (counted)")
     p.add_argument("--quiet", action="store_true")
@@ -330,7 +336,8 @@ def _add_ccd_check(sub) -> None:
 
 
 def _add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="ground-truth demo: simulate and render a short sequence with the IPC solver (no model)")
+    p = sub.add_parser("demo",
+                       help="ground-truth demo: simulate and render a short sequence with the IPC solver (no model)")
     p.add_argument("--scene", default="sphere_mat")
     p.add_argument("--resolution", choices=("ci", "full"), default="ci")
     p.add_argument("--frames", type=_positive, default=20)
@@ -352,7 +359,8 @@ VERBS = (
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
-    parser = argparse.ArgumentParser(prog="colgnn", description="Collision-aware GNN simulation of tool-object contact.")
+    parser = argparse.ArgumentParser(prog="colgnn",
+                                     description="Collision-aware GNN simulation of tool-object contact.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for _, add, _ in VERBS:
         add(sub)

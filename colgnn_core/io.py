@@ -96,7 +96,8 @@ class Sequence:
             raise InputError(f"{source}: tool_positions must be [T,M,3] with T={op.shape[0]}, got {tp.shape}")
         if self.tool_poses.shape != (op.shape[0], 7):
             raise InputError(f"{source}: tool_poses must be [{op.shape[0]},7], got {self.tool_poses.shape}")
-        for name, faces, n in (("object_faces", self.object_faces, op.shape[1]), ("tool_faces", self.tool_faces, tp.shape[1])):
+        for name, faces, n in (("object_faces", self.object_faces, op.shape[1]),
+                               ("tool_faces", self.tool_faces, tp.shape[1])):
             if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] < 1:
                 raise InputError(f"{source}: {name} must be [F,3], got {faces.shape}")
             if faces.min() < 0 or faces.max() >= n:

@@ -160,7 +160,8 @@ def run(args: argparse.Namespace) -> dict:
     slope = float(np.polyfit(t[after], mb[after], 1)[0] * 60.0) if after.sum() >= 3 else float("nan")
     return {
         "scene": meta.scene, "resolution": meta.resolution, "checkpoint": str(checkpoint), "rate_hz": args.rate,
-        "threads": args.threads, "compile": args.compile, "correction": args.correction, "step_on_arrival": not args.timer_only, "duration_s": round(float(t[-1]) if len(t) else 0, 1),
+        "threads": args.threads, "compile": args.compile, "correction": args.correction,
+            "step_on_arrival": not args.timer_only, "duration_s": round(float(t[-1]) if len(t) else 0, 1),
         "poses": len(counted), "meshes": int(len(latency_ms)),
         "mesh_fraction": float(len(latency_ms) / len(counted)) if counted else 0.0,
         "latency_ms_median": latency["median"], "latency_ms_p95": latency["p95"],
@@ -178,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="sphere_mat")
     ap.add_argument("--checkpoint", default=None, help="model (.pt); default: the scene's shipped model")
     ap.add_argument("--rate", type=float, default=25.0, help="poses per second (default 25)")
-    ap.add_argument("--duration", type=float, default=30.0, help="seconds of poses (default 30; 600 for the memory check)")
+    ap.add_argument("--duration", type=float, default=30.0,
+                    help="seconds of poses (default 30; 600 for the memory check)")
     ap.add_argument("--trajectory", default="press", help="pose_publisher's scripted motion, looped (default press)")
     ap.add_argument("--threads", type=int, default=1, help="the node's torch threads (default 1)")
     ap.add_argument("--compile", action="store_true", help="the node torch.compiles its network at start-up")

@@ -228,7 +228,8 @@ def run(args: argparse.Namespace) -> int:
             budget = MESSAGE_WAIT_S + frames / rate + 10.0
             finished = spin_while(lambda: publisher.poll() is None and predictor.poll() is None, budget)
             if predictor.poll() is not None:
-                raise RuntimeError(f"the predictor exited with code {predictor.returncode}; see {out / 'predictor.log'}")
+                raise RuntimeError(f"the predictor exited with code {predictor.returncode}; see "
+                                   f"{out / 'predictor.log'}")
             if not finished:
                 raise RuntimeError("interrupted" if interrupted else "the pose publisher did not finish in time")
             if publisher.returncode != 0:

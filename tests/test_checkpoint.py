@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers.learn_meshes import box_and_sphere
 from colgnn_core.errors import InputError
 from colgnn_core.learn.checkpoint import (CheckpointMeta, capture_rng_state, check_compatible, read_checkpoint,
                                           restore_rng_state, save_checkpoint, simulator_from_payload)
 from colgnn_core.learn.losses import loss_q
 from colgnn_core.learn.model import Frame, ModelConfig, Simulator
+from tests.helpers.learn_meshes import box_and_sphere
 
 torch.set_num_threads(1)
 

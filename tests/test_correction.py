@@ -18,16 +18,13 @@ import pytest
 import torch
 
 from colgnn_core.collision.correction import CollisionCorrector, certify_triangles, rigid_step
-from colgnn_core.collision.exact import tool_intersects, tool_step_free
 from colgnn_core.errors import InputError
-from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
-from colgnn_core.learn.checkpoint import CheckpointMeta, LoadedCheckpoint
-from colgnn_core.learn.graph import template_from_scene
-from colgnn_core.learn.model import ModelConfig, Simulator
-from colgnn_core.scenes import load_scene, scene_names
-from tests.helpers.correction_cases import make_model, oracle_intersects, oracle_step_free
 from colgnn_core.evaluation.measure import family_poses
 from colgnn_core.evaluation.stability import check_rollout, hard_cases
+from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
+from colgnn_core.learn.graph import template_from_scene
+from colgnn_core.scenes import load_scene
+from tests.helpers.correction_cases import make_model, oracle_intersects, oracle_step_free
 
 torch.set_num_threads(1)
 

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import train_data as fx
-from colgnn_core.evaluation.measure import finite, rmse_fraction
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.accuracy import evaluate
+from colgnn_core.evaluation.measure import finite, rmse_fraction
 from colgnn_core.io import load_sequence
 from colgnn_core.runtime.rollout import rollout
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 

@@ -310,7 +310,7 @@ def _publish_node_topics(node, executor, rec_counts, n: int):
         for topic, item in items.items():
             pubs[topic].publish(item)
             sent[topic].append(item)
-        spin_until(executor, lambda: all(c >= i + 1 for c in rec_counts().values()), timeout=2.0)
+        spin_until(executor, lambda i=i: all(c >= i + 1 for c in rec_counts().values()), timeout=2.0)
     assert spin_until(executor, lambda: all(c >= n for c in rec_counts().values()))
     for p in pubs.values():
         node.destroy_publisher(p)

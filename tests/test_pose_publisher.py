@@ -18,8 +18,6 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from tests.helpers.ros import finish, ros_env, spin_until  # noqa: E402
-
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -28,9 +26,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from colgnn_core.errors import InputError  # noqa: E402
 from colgnn_core.io import write_poses_csv  # noqa: E402
 from colgnn_core.scenes import load_scene, scripted_poses  # noqa: E402
-from colgnn_ros.common import POSE_QOS  # noqa: E402
 from colgnn_ros.pose_publisher_node import PARAMETERS, PosePublisher  # noqa: E402
 from msg_tools import pose_to_array, stamp_to_ns  # noqa: E402
+from tests.helpers.ros import finish, ros_env, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import train_data as fx
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
 from colgnn_core.io import load_sequence
 from colgnn_core.runtime.predictor import (SETTLE_AFTER_STEPS, SETTLE_RAMP_STEPS, Predictor, StepResult,
                                    tool_step_limits)
 from colgnn_core.runtime.rollout import rollout
+from tests.helpers import train_data as fx
 from tests.helpers.correction_cases import make_model, oracle_intersects, oracle_step_free
 
 torch.set_num_threads(1)
@@ -151,7 +151,8 @@ def test_step_limits_come_from_the_training_family(scene):
     fam = scene.family
     assert trans >= 1.5 * max(fam["speed"]) * max(fam["retract_speed_factor"]) - 1e-12
     assert math.radians(2.0) <= rot < math.radians(45.0)
-    assert tool_step_limits(scene, {"tool_step_max_translation": 0.001, "tool_step_max_rotation": 0.01}) == (0.001, 0.01)
+    assert tool_step_limits(scene, {"tool_step_max_translation": 0.001, "tool_step_max_rotation": 0.01}) == (0.001,
+                                                                                                             0.01)
 
 
 def test_large_jump_is_split_into_model_steps(scene):

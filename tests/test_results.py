@@ -6,13 +6,13 @@ import shutil
 import pytest
 import torch
 
-from tests.helpers import train_data as fx
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import finite
 from colgnn_core.evaluation.report import model_paths, results
 from colgnn_core.evaluation.report_data import ResultsReport
 from colgnn_core.evaluation.report_markdown import reduction
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 

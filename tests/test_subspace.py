@@ -4,16 +4,16 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import train_data as fx
 from colgnn_core.errors import InputError
 from colgnn_core.io import load_sequence
 from colgnn_core.learn.checkpoint import read_checkpoint
-from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.data import FrameDataset
+from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.subspace import SubspaceConfig, SubspaceModel, train_subspace
 from colgnn_core.learn.train import train
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import load_scene
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import train_data as fx
 from colgnn_core.errors import InputError
 from colgnn_core.learn.checkpoint import read_checkpoint
-from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.data import FrameDataset, sample_at
 from colgnn_core.learn.graph import template_from_scene
+from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.train import TrainConfig, ramp, train, variant_weights
 from colgnn_core.scenes import load_scene
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]

@@ -165,7 +165,8 @@ class CollisionCorrector:
         self.surface_ids = self.surface.vertices
         bound = ToolSDFBound(tool)
         if not bound.usable:
-            raise InputError(f"the {tool.shape} tool mesh is not convex: the correction's SDF bounds need a convex tool")
+            raise InputError(f"the {tool.shape} tool mesh is not convex: the correction's SDF bounds need a convex "
+                             "tool")
         self.mesh_margin = bound.margin              # tool mesh sticks out of the analytic shape by at most this
         self.margin = max(float(margin_fraction) * float(dhat), MIN_MARGIN)
         self.max_iterations = int(max_iterations)
@@ -614,8 +615,8 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
 
     Candidates: primitives around surface vertices with SDF < ``level`` + ``lmax`` (the longest surface edge)
     whose bound (min vertex SDF - their longest edge) is below ``level`` (= trig + the tool mesh's
-    tessellation bound); then a box join (boxes grown by ``trig``) and exact distances. Returns (ee [K,2] (object edge, tool edge), ee_dist,
-    ee_alpha, fv [J,2] (tool vertex, object face), fv_dist, fv_w [J,3]).
+    tessellation bound); then a box join (boxes grown by ``trig``) and exact distances. Returns (ee [K,2] (object
+    edge, tool edge), ee_dist, ee_alpha, fv [J,2] (tool vertex, object face), fv_dist, fv_w [J,3]).
     """
     n = x1.shape[0]
     s = np.full(n, np.inf)

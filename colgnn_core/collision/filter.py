@@ -121,7 +121,8 @@ def bernstein_coefficients(p0, a0, b0, c0, p1, a1, b1, c1) -> tuple[np.ndarray, 
     Inputs are [K,3] positions (any length unit). Coefficients are b0, b1, b2, b3 of
     f(t) = sum_i b_i B_i(t), f in length^3.
     """
-    arrs = [_soa(x, n) for x, n in zip((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1", "c1"))]
+    arrs = [_soa(x, n) for x, n in zip((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1",
+                                                                          "c1"))]
     _check_same_k(arrs)
     coef, mag = coefficients_soa(*arrs)
     c = np.stack(coef, axis=1)
@@ -137,7 +138,8 @@ def filter_vertex_face(p0, a0, b0, c0, p1, a1, b1, c1) -> np.ndarray:
 
     All inputs [K,3] float64. False = certainly no contact during the step.
     """
-    arrs = [_soa(x, n) for x, n in zip((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1", "c1"))]
+    arrs = [_soa(x, n) for x, n in zip((p0, a0, b0, c0, p1, a1, b1, c1), ("p0", "a0", "b0", "c0", "p1", "a1", "b1",
+                                                                          "c1"))]
     _check_same_k(arrs)
     return keep_quads(*stack_quads([a.T for a in arrs]))
 

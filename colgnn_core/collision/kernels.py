@@ -74,7 +74,8 @@ def bernstein_terms(P0, A0, B0, C0, P1, A1, B1, C1):
     ave, avg = vec_add(ae1, ae0), vec_add(ag1, ag0)
     aw = abs_cross(ave[0], ave[1], ave[2], avg[0], avg[1], avg[2])
     anh2 = vec_add(vec_add(an0, an1), aw)
-    mag = (vec_dot(ad0, an0), vec_dot(ad0, anh2) + vec_dot(ad1, an0), vec_dot(ad1, anh2) + vec_dot(ad0, an1), vec_dot(ad1, an1))
+    mag = (vec_dot(ad0, an0), vec_dot(ad0, anh2) + vec_dot(ad1, an0), vec_dot(ad1, anh2) + vec_dot(ad0, an1),
+           vec_dot(ad1, an1))
     return coef, mag
 
 

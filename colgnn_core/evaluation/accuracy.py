@@ -6,9 +6,9 @@ network alone) and ``corrected`` (through the Predictor's collision-aware correc
 (docs/ARCHITECTURE.md, "Metrics"):
 
 * rollout RMSE of the positions (all mesh vertices) as a fraction of the object's rest bounding-box diagonal
-  (:func:`colgnn_core.evaluation.measure.rmse_fraction`) at steps 1, 10, 50 (where the sequences are long enough) and over
-  all steps (per sequence the mean of steps 1..T-1), mean ± std over the test sequences, and the per-step
-  curve;
+  (:func:`colgnn_core.evaluation.measure.rmse_fraction`) at steps 1, 10, 50 (where the sequences are long
+  enough) and over all steps (per sequence the mean of steps 1..T-1), mean ± std over the test sequences, and
+  the per-step curve;
 * crossings over [t, t+1] (N_vf, d_vf mean/max, N_ee, d_ee mean/max) and penetrations per frame of the
   ground truth and of each rollout (:func:`colgnn_core.collision.metrics.sequence_metrics`, exact oracle
   unless ``exact=False``), pooled across sequences by :func:`colgnn_core.evaluation.measure.collision_aggregate`.
@@ -230,7 +230,8 @@ def plot_curves(curves: dict[str, tuple], title: str, path: Path, dashed: tuple[
 
 def plot_rmse(result: dict, path: Path) -> Path:
     """RMSE over time (mean ± std band over sequences) per mode, as a PNG (matplotlib, Agg)."""
-    curves = {ROW_LABELS.get(m, m): (result["rows"][m]["rmse"]["curve"]["mean"], result["rows"][m]["rmse"]["curve"]["std"])
+    curves = {ROW_LABELS.get(m, m): (result["rows"][m]["rmse"]["curve"]["mean"],
+                                     result["rows"][m]["rmse"]["curve"]["std"])
               for m in result["modes"]}
     return plot_curves(curves, f"{result['scene']} ({result['resolution']}): rollout error, "
                        f"{len(result['sequences'])} test sequence(s)", path, dashed=(ROW_LABELS["corrected"],))

@@ -142,8 +142,8 @@ def bench_collision(scene_name: str = "cone_bunny", resolution: str = "full", *,
 
     The step: ``step`` (a dict as returned by :func:`contact_step`), else the deepest-contact
     step of ``sequence`` (a Sequence or a path; ``frame`` picks another), else a synthetic
-    :func:`contact_step` of the scene. Keys: scene, resolution, step_source, threads, sizes (surface vertices, faces, edges, tool
-    vertices), candidates / survivors / crossings per kind, culled_fraction (filter
+    :func:`contact_step` of the scene. Keys: scene, resolution, step_source, threads, sizes (surface vertices,
+    faces, edges, tool vertices), candidates / survivors / crossings per kind, culled_fraction (filter
     culls among broad-phase candidates), culled_fraction_of_noncolliding (the same among
     candidates ipctk finds contact-free), median ms for broad, filter_narrow (one fused kernel) and total
     (``ours_ms``), ipctk
@@ -266,5 +266,6 @@ def format_bench_collision(r: dict) -> str:
         ("speed-up vs ipctk full step", f"{r['speedup_vs_ipctk_step']:.1f}x"),
     ]
     w = max(len(k) for k, _ in rows)
-    head = f"collision benchmark: {r['scene']} ({r['resolution']}), {r['repeats']} repeats, load {r['load_average_1min']:.2f}"
+    head = (f"collision benchmark: {r['scene']} ({r['resolution']}), {r['repeats']} repeats, "
+            f"load {r['load_average_1min']:.2f}")
     return "\n".join([head] + [f"  {k.ljust(w)}  {v}" for k, v in rows])

@@ -97,7 +97,8 @@ def _draw_frame(ax, seq: Sequence, frame: int, scale: float, limits: tuple[np.nd
 
     obj = seq.object_positions[frame][seq.object_faces]
     tool = seq.tool_positions[frame][seq.tool_faces]
-    ax.add_collection3d(Poly3DCollection(obj, facecolors=_face_colors(seq, frame, scale), edgecolor="none", linewidth=0))
+    ax.add_collection3d(Poly3DCollection(obj, facecolors=_face_colors(seq, frame, scale), edgecolor="none",
+                                         linewidth=0))
     ax.add_collection3d(Poly3DCollection(tool, facecolors=_TOOL_COLOR, edgecolor="none", linewidth=0))
     lo, hi = limits
     ax.set_xlim(lo[0], hi[0])
@@ -157,7 +158,8 @@ def _limits(seqs: list[Sequence], frames: list[int]) -> tuple[np.ndarray, np.nda
     return lo, hi
 
 
-def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None, count: int = 5,
+def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None,
+                 count: int = 5,
                  dpi: int = 90) -> Path:
     """Write a PNG grid: per sequence, a row of 3-D views and a row of cross-sections through the contact."""
     import matplotlib  # lazy: matplotlib is heavy and only the pictures need it
@@ -202,7 +204,8 @@ def render_gif(seq: Sequence, out: str | Path, stride: int = 1, fps: int = 10) -
         ax = fig.add_subplot(1, 1, 1, projection="3d")
         _draw_frame(ax, seq, f, scale, limits, f"t={f}")
         fig.canvas.draw()
-        images.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert("P", palette=Image.ADAPTIVE))
+        images.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+                      .convert("P", palette=Image.ADAPTIVE))
     plt.close(fig)
     with atomic_write(out) as fh:
         images[0].save(fh, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)

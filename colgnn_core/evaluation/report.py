@@ -10,10 +10,10 @@ in the same folder, each used where it exists) the report is rebuilt from scratc
    ``torch.compile``) over the first test sequence; "raw network" is the step without the correction stage
    (everything else the step does is included), "with correction" is the whole published step.
 3. **Collisions and accuracy** (Table 2, accuracy table, error-over-time plot):
-   :func:`colgnn_core.evaluation.accuracy.evaluate` of every variant (raw), plus the full model through the correction,
-   with the exact ipctk oracle.
-4. **Hard cases**: :func:`colgnn_core.evaluation.stability.hard_cases` through the Predictor, each frame and step checked
-   by ipctk (:func:`colgnn_core.evaluation.stability.check_rollout`).
+   :func:`colgnn_core.evaluation.accuracy.evaluate` of every variant (raw), plus the full model through the
+   correction, with the exact ipctk oracle.
+4. **Hard cases**: :func:`colgnn_core.evaluation.stability.hard_cases` through the Predictor, each frame and step
+   checked by ipctk (:func:`colgnn_core.evaluation.stability.check_rollout`).
 5. **Speed against error**: :func:`colgnn_core.evaluation.frontier.frontier` where frontier checkpoints are shipped
    (``frontier/<scene>/*.pt`` beside the models).
 6. **Pictures**: ground truth / baseline / colgnn strips at the same frames (penetrating vertices red), and the

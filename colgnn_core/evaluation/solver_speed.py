@@ -79,7 +79,8 @@ def bench_ipc(scene, poses: np.ndarray, progress: bool = False, **sim_options: A
     }
 
 
-def estimate_generation_s(result: dict, train: int = 20, test: int = 5, frames: int = 40, contact_fraction: float | None = None) -> float:
+def estimate_generation_s(result: dict, train: int = 20, test: int = 5, frames: int = 40,
+                          contact_fraction: float | None = None) -> float:
     """Single-core seconds to simulate ``train + test`` sequences of ``frames`` frames, from a bench result.
 
     Uses the contact and free-motion medians weighted by ``contact_fraction`` (default: the

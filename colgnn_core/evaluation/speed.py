@@ -108,7 +108,8 @@ def format_bench(r: dict) -> str:
     rows = [("total", r["total_ms"]), ("graph", r["graph_ms"]), ("gnn", r["gnn_ms"]),
             ("correction", r["correction_ms"]), ("IPC solver", r["ipc_ms"])]
     lines = [f"{r['scene']} ({r['resolution']}): {r['vertices']} vertices, {r['edges']} surface edges, "
-             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
+             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} "
+             f"threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
              f"{'stage':<12}{'median ms':>11}{'p95 ms':>10}"]
     lines += [f"{name:<12}{s['median']:>11.2f}{s['p95']:>10.2f}" for name, s in rows]
     e = r["rollout_rmse"]

@@ -380,7 +380,8 @@ def _mesh_cone(radius: float, height: float, tip_radius: float, n: int) -> tuple
     return v, _outward(v, f)
 
 
-def _mesh_blade(length: float, height: float, thickness: float, bevel: float, n_along: int) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_blade(length: float, height: float, thickness: float, bevel: float,
+                n_along: int) -> tuple[np.ndarray, np.ndarray]:
     section = blade_section(height, thickness, bevel)  # [5,2] (y,z)
     xs = np.linspace(-0.5 * length, 0.5 * length, n_along + 1)
     m = len(section)
@@ -437,7 +438,8 @@ class Tool:
 
     def sdf(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Signed distance [N] (m) of world points [N,3] to the tool at ``pose`` [7]."""
-        return self.sdf_local(inverse_transform_points(np.asarray(points, dtype=np.float64).reshape(-1, 3), np.asarray(pose, dtype=np.float64)))
+        return self.sdf_local(inverse_transform_points(np.asarray(points, dtype=np.float64).reshape(-1, 3),
+                                                       np.asarray(pose, dtype=np.float64)))
 
     def sdf_grad(self, points: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(d [N], unit outward gradient [N,3] in world) at world points [N,3].
@@ -511,6 +513,7 @@ def make_tool(shape: str, params: dict, resolution: str = "full") -> Tool:
         if p["bevel"] >= p["height"]:
             raise InputError("blade bevel must be smaller than its height")
         v, f = _mesh_blade(p["length"], p["height"], p["thickness"], p["bevel"], n)
-    tool = Tool(shape=shape, params=p, vertices=np.ascontiguousarray(v, dtype=np.float64), faces=np.ascontiguousarray(f, dtype=np.int64))
+    tool = Tool(shape=shape, params=p, vertices=np.ascontiguousarray(v, dtype=np.float64),
+                faces=np.ascontiguousarray(f, dtype=np.int64))
     tool.validate()
     return tool

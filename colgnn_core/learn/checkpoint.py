@@ -153,7 +153,8 @@ def strip_training_state(src: str | os.PathLike, dst: str | os.PathLike) -> None
         torch.save(payload, fh)
 
 
-def check_compatible(meta: CheckpointMeta, scene_name: str, fingerprint: str, dt: float, source: str = "checkpoint") -> None:
+def check_compatible(meta: CheckpointMeta, scene_name: str, fingerprint: str, dt: float,
+                     source: str = "checkpoint") -> None:
     """InputError when the checkpoint was trained for another scene, mesh or time step."""
     if meta.scene != scene_name:
         raise InputError(f"{source} is for scene {meta.scene!r}, not {scene_name!r}")

@@ -121,7 +121,8 @@ def subspace_from_payload(payload: dict, scene, source: str = "checkpoint") -> S
     try:
         model.load_state_dict(payload["model"])
     except RuntimeError as exc:
-        raise InputError(f"{source}: subspace weights do not match its config/scene: {str(exc).splitlines()[0]}") from exc
+        raise InputError(f"{source}: subspace weights do not match its config/scene: "
+                         f"{str(exc).splitlines()[0]}") from exc
     return model.eval()
 
 
@@ -211,7 +212,8 @@ def train_subspace(scene, data_dir, out_ckpt, resume: bool = False, steps: int |
     for step in range(start, end):
         g = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, step]).generate_state(1)[0]))
         idx = torch.randint(0, n, (min(batch, n),), generator=g)
-        eps = torch.randn(idx.shape[0], z_std.shape[0], generator=g, dtype=torch.float64) * z_std * model.config.noise_std
+        eps = torch.randn(idx.shape[0], z_std.shape[0], generator=g,
+                          dtype=torch.float64) * z_std * model.config.noise_std
         zt = z_t[idx] + eps
         # the target asks to undo the noise (as the GNN's training noise does)
         tgt = model.out_norm(z_next[idx] - 2 * zt + z_prev[idx]).float()

@@ -224,7 +224,8 @@ def _read_manifest(out_dir: Path) -> dict:
     return data
 
 
-def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], failed: dict[str, dict] | None = None) -> None:
+def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], failed: dict[str,
+                                                                                        dict] | None = None) -> None:
     """Merge ``entries`` (and ``failed`` jobs) into the manifest on disk (other shards may have added theirs) and
     replace it atomically. A file that now has an entry is dropped from ``failed``."""
     data = _read_manifest(out_dir)

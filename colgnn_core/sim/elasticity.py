@@ -232,7 +232,9 @@ class StableNeoHookean:
         sig[flip_v, 2] *= -1.0
         s0, s1, s2 = sig[:, 0], sig[:, 1], sig[:, 2]
         gam = np.stack([s1 * s2, s0 * s2, s0 * s1], axis=1)
-        amat = b[:, None, None] * sig[:, :, None] * sig[:, None, :] + lam2[:, None, None] * gam[:, :, None] * gam[:, None, :]
+        amat = b[:, None, None] * sig[:, :, None] * sig[:, None, :] + lam2[:, None, None] * gam[:, :, None] * gam[:,
+                                                                                                                  None,
+                                                                                                                  :]
         amat[:, 0, 1] += c * s2
         amat[:, 1, 0] += c * s2
         amat[:, 0, 2] += c * s1
@@ -242,7 +244,8 @@ class StableNeoHookean:
         amat[:, np.arange(3), np.arange(3)] += a[:, None]
         w_scale, e_scale = np.linalg.eigh(amat)
         # Outer products u_a v_bᵀ of singular-vector columns, row-major vec: [K, 3(a), 3(b), 9].
-        outer = (u[:, :, :, None, None] * vt.transpose(0, 2, 1)[:, None, None, :, :]).transpose(0, 2, 4, 1, 3).reshape(k, 3, 3, 9)
+        outer = (u[:, :, :, None, None] * vt.transpose(0, 2, 1)[:, None, None, :, :]
+                 ).transpose(0, 2, 4, 1, 3).reshape(k, 3, 3, 9)
         q = np.empty((k, 9, 9))
         lam = np.empty((k, 9))
         diag = outer[:, np.arange(3), np.arange(3)]  # [K,3,9]: u_a v_aᵀ
