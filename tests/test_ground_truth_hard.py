@@ -54,8 +54,8 @@ def test_the_hard_trajectories_simulate_at_ci(name):
 
 
 def test_a_failed_solve_is_solved_again_in_halves():
-    """Newton capped at 12 iterations: the plunge's first frame (3 cm, into the bunny) does not converge in one step;
-    it does in sub-frames, each verified, and the frame ends exactly on its pose."""
+    """Newton capped at 12 iterations: the plunge's first frame (3 cm down, 1.5 cm into the bunny) does not converge
+    in one step; it does in sub-frames, each verified, and the frame ends exactly on its pose."""
     scene = load_scene("cone_bunny", "ci")
     poses = hard_trajectories(scene, tool_step_limits(scene)[0], kinds=["fast plunge"])["fast plunge"][:2]
     seq = simulate_sequence(scene, poses, max_newton=12)
