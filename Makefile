@@ -1,4 +1,5 @@
-# colgnn: `make demo` (set-up + main job) and `make test` (set-up + tests) work on a fresh clone.
+# colgnn: `make demo` (set-up + main job) and `make test` (set-up + lint + import contracts + tests) work on a
+# fresh clone.
 PY      ?= python3
 VENV    := .venv
 VPY     := $(VENV)/bin/python
@@ -20,7 +21,10 @@ $(STAMP): setup.py setup.cfg requirements.txt
 	$(PIPQ) -e .
 	touch $(STAMP)
 
+# Lint (ruff) and the import contracts (import-linter; both configured in pyproject.toml) before the tests.
 test: setup
+	$(VPY) -m ruff check .
+	$(VENV)/bin/lint-imports
 	$(VPY) -m pytest -q
 
 test-slow: setup

@@ -1,7 +1,5 @@
 """colgnn: an ament_python package (colcon/ros2 run) that also installs with plain pip."""
 
-from glob import glob
-
 from setuptools import find_packages, setup
 
 PACKAGE = "colgnn_ros"
@@ -9,7 +7,8 @@ PACKAGE = "colgnn_ros"
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=find_packages(include=["colgnn_core", "colgnn_core.*", "colgnn_ros", "colgnn_ros.*", "msg_tools", "msg_tools.*"]),
+    packages=find_packages(include=["colgnn_core", "colgnn_core.*", "colgnn_ros", "colgnn_ros.*", "msg_tools",
+                                    "msg_tools.*"]),
     package_data={"colgnn_core": ["scenes/*.toml", "assets/meshes/*", "assets/models/*", "assets/ccd/**/*"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

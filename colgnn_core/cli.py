@@ -11,15 +11,29 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
+import numpy as np
+
+from colgnn_core.collision.ccd_queries import format_ccd_report, run_ccd_check
 from colgnn_core.errors import InputError, SimulationError
+from colgnn_core.evaluation.accuracy import evaluate, format_markdown
+from colgnn_core.evaluation.collision_speed import bench_collision, format_bench_collision
+from colgnn_core.evaluation.frontier import format_frontier, frontier
+from colgnn_core.evaluation.render import render_file, render_strip
+from colgnn_core.evaluation.report import results
+from colgnn_core.evaluation.speed import bench, format_bench
+from colgnn_core.evaluation.stability import format_stability, stability
+from colgnn_core.io import ensure_writable_dir, read_poses_csv, save_sequence
+from colgnn_core.learn.train import TrainConfig, train
+from colgnn_core.runtime.rollout import rollout
+from colgnn_core.scenes import load_scene, scene_names
+from colgnn_core.scenes.trajectories import sample_poses, split_seeds
+from colgnn_core.sim.dataset import generate_dataset, parse_shard, simulate_sequence
 
 Handler = Callable[[argparse.Namespace], int]
 
 
 def _shard(text: str) -> tuple[int, int]:
     """Parse ``I/N`` (0 ≤ I < N) for argparse; the rule lives in ``sim.dataset.parse_shard``."""
-    from colgnn_core.sim.dataset import parse_shard
-
     try:
         return parse_shard(text)
     except InputError as exc:
@@ -34,8 +48,6 @@ def _positive(text: str) -> int:
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
-    from colgnn_core.scenes import load_scene, scene_names
-
     rows = [load_scene(name, args.resolution).to_json() for name in scene_names()]
     if args.json:
         print(json.dumps(rows, indent=2))
@@ -43,15 +55,12 @@ def cmd_scenes(args: argparse.Namespace) -> int:
     print(f"{'scene':<16} {'tool':<9} {'vertices':>8} {'faces':>7}  {'dt':>5}  bbox (m)")
     for r in rows:
         size = [hi - lo for lo, hi in zip(r["object_bbox_min"], r["object_bbox_max"])]
-        print(f"{r['name']:<16} {r['tool_shape']:<9} {r['object_vertices']:>8} {r['object_faces']:>7}  {r['dt']:>5.3f}  "
-              + " x ".join(f"{s:.3f}" for s in size))
+        print(f"{r['name']:<16} {r['tool_shape']:<9} {r['object_vertices']:>8} {r['object_faces']:>7}  "
+              f"{r['dt']:>5.3f}  " + " x ".join(f"{s:.3f}" for s in size))
     return 0
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from colgnn_core.io import read_poses_csv
-    from colgnn_core.sim.dataset import generate_dataset
-
     poses = None
     if args.poses is not None:
         _, poses = read_poses_csv(args.poses)
@@ -75,8 +84,6 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from colgnn_core.learn.train import TrainConfig, train
-
     config = None
     if args.ccd_form is not None or args.model is not None or args.graph is not None:
         config = TrainConfig()
@@ -95,9 +102,6 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_rollout(args: argparse.Namespace) -> int:
-    from colgnn_core.io import read_poses_csv, save_sequence
-    from colgnn_core.rollout import rollout
-
     _, poses = read_poses_csv(args.poses)
     seq = rollout(args.checkpoint or args.scene, poses, correction=not args.no_correction, limits=args.limits,
                   progress=not args.quiet)
@@ -107,11 +111,7 @@ def cmd_rollout(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from colgnn_core.bench import bench, format_bench
-
     if args.stability:
-        from colgnn_core.stability import format_stability, stability
-
         result = stability(args.checkpoint or args.scene, steps=args.steps, seed=args.seed, threads=args.threads,
                            compile=args.compile, limits=args.limits, rest_relaxation=args.rest_relaxation,
                            progress=not args.json)
@@ -120,8 +120,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(json.dumps(result, indent=2) if args.json else format_stability(result))
         return 0
     if args.collision:
-        from colgnn_core.collision.benchmark import bench_collision, format_bench_collision
-
         result = bench_collision(args.scene, args.resolution, repeats=args.repeats, sequence=args.sequence)
         print(json.dumps(result, indent=2) if args.json else format_bench_collision(result))
         return 0
@@ -133,23 +131,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from colgnn_core.evaluate import evaluate, format_markdown
-
     if args.all:
-        from colgnn_core.results import results
-
         report = results(args.out, scenes=args.scene, data_root=args.data_root, models_dir=args.models,
                          test_sequences=args.test_sequences, frames=args.frames, jobs=args.jobs, threads=args.threads,
                          compile=args.compile, hard_frames=args.hard_frames, random_steps=args.random_steps,
                          progress=not args.quiet)
-        print(f"wrote {report['files']['markdown']} and {report['files']['json']} in {report['wall_s'] / 60:.1f} min")
+        print(f"wrote {report.files['markdown']} and {report.files['json']} in {report.wall_s / 60:.1f} min")
         return 0
     if not args.scene or len(args.scene) != 1:
         raise InputError("give one --scene (or --all for the results report)")
     args.scene = args.scene[0]
     if args.frontier:
-        from colgnn_core.frontier import format_frontier, frontier
-
         ckpts = args.frontier_checkpoints or ([args.checkpoint] if args.checkpoint else [args.scene])
         result = frontier(args.scene, ckpts, args.data, args.out, steps=args.steps,
                           max_sequences=args.max_sequences or 2, threads=args.threads, compile=args.compile,
@@ -173,21 +165,18 @@ def _model_size(text: str) -> tuple[int, int, int]:
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"model size must look like LATENT/STEPS/LAYERS, got {text!r}") from exc
     if len(values) != 3 or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"model size must be three positive integers LATENT/STEPS/LAYERS, got {text!r}")
+        raise argparse.ArgumentTypeError("model size must be three positive integers LATENT/STEPS/LAYERS, got "
+                                         f"{text!r}")
     return values
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from colgnn_core.render import render_file
-
     out = render_file(args.file, args.out, count=args.count, stride=args.stride)
     print(f"wrote {out}")
     return 0
 
 
 def cmd_ccd_check(args: argparse.Namespace) -> int:
-    from colgnn_core.collision.ccd_queries import format_ccd_report, run_ccd_check
-
     if not Path(args.dir).is_dir():
         raise InputError(f"no such folder: {args.dir}")
     report = run_ccd_check(args.dir)
@@ -197,14 +186,6 @@ def cmd_ccd_check(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Ground-truth demo: simulate one short sequence of the default scene and render it."""
-    import numpy as np
-
-    from colgnn_core.io import ensure_writable_dir, save_sequence
-    from colgnn_core.render import render_strip
-    from colgnn_core.scenes import load_scene
-    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
-    from colgnn_core.sim.dataset import simulate_sequence
-
     out = ensure_writable_dir(args.out)
     scene = load_scene(args.scene, args.resolution)
     poses = sample_poses(scene, split_seeds("test", 1)[0], args.frames)
@@ -218,16 +199,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
-    parser = argparse.ArgumentParser(prog="colgnn", description="Collision-aware GNN simulation of tool-object contact.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    handlers: dict[str, Handler] = {}
-
+def _add_scenes(sub) -> None:
     p = sub.add_parser("scenes", help="list the scenes")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--resolution", choices=("ci", "full"), default="full")
-    handlers["scenes"] = cmd_scenes
 
+
+def _add_generate(sub) -> None:
     p = sub.add_parser("generate", help="simulate ground-truth sequences with the IPC solver")
     p.add_argument("--scene", required=True)
     p.add_argument("--out", required=True, help="output folder")
@@ -235,7 +213,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
                    help="training sequences (default 20); with --split test: test sequences")
     p.add_argument("--split", choices=("both", "train", "test"), default="both",
                    help="both (default): --sequences training + --test-sequences held-out ones; or only one split")
-    p.add_argument("--test-sequences", type=int, default=None, help="held-out test sequences (default: sequences/4, at least 1)")
+    p.add_argument("--test-sequences", type=int, default=None,
+                   help="held-out test sequences (default: sequences/4, at least 1)")
     p.add_argument("--frames", type=_positive, default=40, help="frames per sequence, rest frame included (default 40)")
     p.add_argument("--jobs", type=_positive, default=1)
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N", help="simulate only shard I of N")
@@ -244,8 +223,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--retry-failed", action="store_true",
                    help="simulate again sequences whose every seed failed in an earlier run (default: skip them)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    handlers["generate"] = cmd_generate
 
+
+def _add_train(sub) -> None:
     p = sub.add_parser("train", help="train a model on a generated dataset")
     p.add_argument("--scene", required=True)
     p.add_argument("--data", required=True, help="dataset folder made by `colgnn generate`")
@@ -257,25 +237,31 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
                    help="graph nodes: surface vertices only, or every tet-mesh vertex (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=_positive, default=None, help="torch threads")
-    p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M", help="latent/message-passing steps/MLP layers")
-    p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None, help="reduction of L_ccd (paper: max)")
-    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS", help="stop (with a checkpoint) after this long")
+    p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M",
+                   help="latent/message-passing steps/MLP layers")
+    p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None,
+                   help="reduction of L_ccd (paper: max)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="stop (with a checkpoint) after this long")
     p.add_argument("--resolution", choices=("ci", "full"), default=None, help="default: from the dataset manifest")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    handlers["train"] = cmd_train
 
+
+def _add_rollout(sub) -> None:
     p = sub.add_parser("rollout", help="roll a model out over a poses CSV")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--checkpoint")
     src.add_argument("--scene", help="use the shipped model of this scene")
     p.add_argument("--poses", required=True, help="CSV with t,px,py,pz,qx,qy,qz,qw")
     p.add_argument("--out", required=True, help="rollout .npz")
-    p.add_argument("--no-correction", action="store_true", help="the raw network, without the collision-aware correction")
+    p.add_argument("--no-correction", action="store_true",
+                   help="the raw network, without the collision-aware correction")
     p.add_argument("--limits", choices=("none", "data"), default="none",
                    help="'data': cap per-step motion and distance from rest by the training data's extremes (counted)")
     p.add_argument("--quiet", action="store_true")
-    handlers["rollout"] = cmd_rollout
 
+
+def _add_bench(sub) -> None:
     p = sub.add_parser("bench", help="Predictor step time vs the IPC solver on the same poses, in one run")
     p.add_argument("--scene", required=True)
     p.add_argument("--checkpoint", default=None, help="default: the shipped model of the scene")
@@ -300,8 +286,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
                    help="with --stability: pull the object back towards rest by this fraction per step while the "
                         "tool is out of reach (see Predictor)")
     p.add_argument("--json", action="store_true")
-    handlers["bench"] = cmd_bench
 
+
+def _add_evaluate(sub) -> None:
     p = sub.add_parser("evaluate", help="rollout accuracy and collision metrics on a dataset's test sequences")
     p.add_argument("--scene", action="append", default=None,
                    help="the scene (with --all: repeat to choose scenes; default all)")
@@ -332,27 +319,52 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--hard-frames", type=_positive, default=40, help="with --all: length of the short hard cases")
     p.add_argument("--random-steps", type=int, default=2000,
                    help="with --all: steps of the random motion with tilts (0: leave it out)")
-    handlers["evaluate"] = cmd_evaluate
 
+
+def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a sequence or rollout file")
     p.add_argument("file")
     p.add_argument("--out", required=True, help="FILE.png (strip of frames) or FILE.gif (animation)")
     p.add_argument("--count", type=_positive, default=5, help="frames in a PNG strip")
     p.add_argument("--stride", type=_positive, default=1, help="frame stride in a GIF")
-    handlers["render"] = cmd_render
 
+
+def _add_ccd_check(sub) -> None:
     p = sub.add_parser("ccd-check", help="run the collision filter over CCD benchmark CSV queries")
     p.add_argument("dir")
     p.add_argument("--json", action="store_true")
-    handlers["ccd-check"] = cmd_ccd_check
 
-    p = sub.add_parser("demo", help="ground-truth demo: simulate and render a short sequence with the IPC solver (no model)")
+
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo",
+                       help="ground-truth demo: simulate and render a short sequence with the IPC solver (no model)")
     p.add_argument("--scene", default="sphere_mat")
     p.add_argument("--resolution", choices=("ci", "full"), default="ci")
     p.add_argument("--frames", type=_positive, default=20)
     p.add_argument("--out", default="out/demo")
-    handlers["demo"] = cmd_demo
-    return parser, handlers
+
+
+# (verb, parser set-up, handler), in the order of `colgnn --help`
+VERBS = (
+    ("scenes", _add_scenes, cmd_scenes),
+    ("generate", _add_generate, cmd_generate),
+    ("train", _add_train, cmd_train),
+    ("rollout", _add_rollout, cmd_rollout),
+    ("bench", _add_bench, cmd_bench),
+    ("evaluate", _add_evaluate, cmd_evaluate),
+    ("render", _add_render, cmd_render),
+    ("ccd-check", _add_ccd_check, cmd_ccd_check),
+    ("demo", _add_demo, cmd_demo),
+)
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
+    parser = argparse.ArgumentParser(prog="colgnn",
+                                     description="Collision-aware GNN simulation of tool-object contact.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for _, add, _ in VERBS:
+        add(sub)
+    return parser, {name: handler for name, _, handler in VERBS}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

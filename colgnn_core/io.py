@@ -24,6 +24,7 @@ from typing import Iterator
 import numpy as np
 
 from colgnn_core.errors import InputError
+from colgnn_core.geometry.transforms import validate_pose
 
 POSE_COLUMNS = ("t", "px", "py", "pz", "qx", "qy", "qz", "qw")
 _UMASK = os.umask(0)
@@ -95,7 +96,8 @@ class Sequence:
             raise InputError(f"{source}: tool_positions must be [T,M,3] with T={op.shape[0]}, got {tp.shape}")
         if self.tool_poses.shape != (op.shape[0], 7):
             raise InputError(f"{source}: tool_poses must be [{op.shape[0]},7], got {self.tool_poses.shape}")
-        for name, faces, n in (("object_faces", self.object_faces, op.shape[1]), ("tool_faces", self.tool_faces, tp.shape[1])):
+        for name, faces, n in (("object_faces", self.object_faces, op.shape[1]),
+                               ("tool_faces", self.tool_faces, tp.shape[1])):
             if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] < 1:
                 raise InputError(f"{source}: {name} must be [F,3], got {faces.shape}")
             if faces.min() < 0 or faces.max() >= n:
@@ -187,8 +189,6 @@ def read_poses_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     bad = ~np.all(np.isfinite(table), axis=1)
     if bad.any():
         raise InputError(f"{path}:{int(np.argmax(bad)) + 2}: NaN or inf value")
-    from colgnn_core.geometry.transforms import validate_pose
-
     poses = np.empty((len(table), 7))
     for i, row in enumerate(table):
         try:

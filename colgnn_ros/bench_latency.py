@@ -29,9 +29,23 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from visualization_msgs.msg import Marker
 
 from colgnn_core.errors import InputError
-from colgnn_ros.demo import child_env, percentiles, stop
+from colgnn_core.evaluation.measure import stats
+from colgnn_core.learn.checkpoint import CheckpointMeta, read_checkpoint
+from colgnn_core.runtime.models import shipped_checkpoint
+from colgnn_ros.common import OUTPUT_QOS
+from colgnn_ros.demo import child_env, stop
+from msg_tools import stamp_to_ns
+from msg_tools.markers import parse_marker_cdr
 
 WARMUP_S = 3.0   # left out of the latency and memory slope: model load, first steps, DDS discovery
 
@@ -53,21 +67,6 @@ def tree_rss_mb(pid: int) -> float:
 
 
 def run(args: argparse.Namespace) -> dict:
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import PoseStamped
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
-    from visualization_msgs.msg import Marker
-
-    from colgnn_core.learn.checkpoint import CheckpointMeta, read_checkpoint
-    from colgnn_core.rollout import shipped_checkpoint
-    from colgnn_ros.common import OUTPUT_QOS
-    from msg_tools import stamp_to_ns
-    from msg_tools.markers import parse_marker_cdr
-
     checkpoint = Path(args.checkpoint) if args.checkpoint else shipped_checkpoint(args.scene)
     meta = CheckpointMeta(**read_checkpoint(checkpoint)["meta"])
     domain = int(os.environ.get("ROS_DOMAIN_ID") or random.SystemRandom().randint(20, 39))
@@ -154,17 +153,18 @@ def run(args: argparse.Namespace) -> dict:
     meshes = dict(received)
     counted = [s for s, r in sent if warm <= r <= last_ok]
     latency_ms = np.array([(meshes[s] - s) * 1e-6 for s in counted if s in meshes])
-    med, p95 = percentiles(latency_ms)
+    latency = stats(latency_ms, empty=float("nan"))
     t = np.array([x for x, _ in rss])
     mb = np.array([y for _, y in rss])
     after = t >= min(WARMUP_S + 7.0, t[-1] / 2) if len(t) else t
     slope = float(np.polyfit(t[after], mb[after], 1)[0] * 60.0) if after.sum() >= 3 else float("nan")
     return {
         "scene": meta.scene, "resolution": meta.resolution, "checkpoint": str(checkpoint), "rate_hz": args.rate,
-        "threads": args.threads, "compile": args.compile, "correction": args.correction, "step_on_arrival": not args.timer_only, "duration_s": round(float(t[-1]) if len(t) else 0, 1),
+        "threads": args.threads, "compile": args.compile, "correction": args.correction,
+            "step_on_arrival": not args.timer_only, "duration_s": round(float(t[-1]) if len(t) else 0, 1),
         "poses": len(counted), "meshes": int(len(latency_ms)),
         "mesh_fraction": float(len(latency_ms) / len(counted)) if counted else 0.0,
-        "latency_ms_median": med, "latency_ms_p95": p95,
+        "latency_ms_median": latency["median"], "latency_ms_p95": latency["p95"],
         "latency_ms_max": float(latency_ms.max()) if latency_ms.size else float("nan"),
         "rss_mb_start": float(mb[after][0]) if after.sum() else float("nan"),
         "rss_mb_end": float(mb[-1]) if len(mb) else float("nan"),
@@ -179,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="sphere_mat")
     ap.add_argument("--checkpoint", default=None, help="model (.pt); default: the scene's shipped model")
     ap.add_argument("--rate", type=float, default=25.0, help="poses per second (default 25)")
-    ap.add_argument("--duration", type=float, default=30.0, help="seconds of poses (default 30; 600 for the memory check)")
+    ap.add_argument("--duration", type=float, default=30.0,
+                    help="seconds of poses (default 30; 600 for the memory check)")
     ap.add_argument("--trajectory", default="press", help="pose_publisher's scripted motion, looped (default press)")
     ap.add_argument("--threads", type=int, default=1, help="the node's torch threads (default 1)")
     ap.add_argument("--compile", action="store_true", help="the node torch.compiles its network at start-up")

@@ -1,6 +1,6 @@
 """What the colgnn_ros nodes share: QoS profiles, parameters, and the process shell.
 
-- QoS (ARCHITECTURE.md, real-time path): tool poses are best-effort with depth 1 (only the newest
+- QoS (docs/ARCHITECTURE.md, "Real-time path"): tool poses are best-effort with depth 1 (only the newest
   pose matters, a late pose is worthless); outputs (markers, counts, diagnostics) are reliable, as
   RViz subscribes to markers.
 - Parameters are described once as :class:`ParamSpec` rows, declared with rcl_interfaces
@@ -171,8 +171,8 @@ def run_node(make_node: Callable[[], Node], *, prog: str, summary: str, specs: S
 
     ``make_node()`` builds the node in rclpy's default context (raising InputError for bad
     parameters); if the node has a ``done`` Future attribute, the process ends when it completes.
-    ``args`` is an argv like sys.argv (program name first; the default). ``-h``/``--help`` prints :func:`format_help` without starting
-    ROS; other non-ROS arguments are an error.
+    ``args`` is an argv like sys.argv (program name first; the default). ``-h``/``--help`` prints
+    :func:`format_help` without starting ROS; other non-ROS arguments are an error.
     """
     argv = list(sys.argv if args is None else args)
     logger = rclpy.logging.get_logger(prog)

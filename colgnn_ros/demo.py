@@ -4,7 +4,7 @@ Starts two processes, the ``predictor`` node (the scene's shipped model, or ``--
 ``pose_publisher`` with a scripted press at the model's rate, records their topics (rosbag2, MCAP)
 from this process with :class:`msg_tools.recorder.TopicRecorder` for the length of the trajectory
 (``--duration``, 10 s), stops the node, reads the recording back, rebuilds the object and tool
-meshes from the markers and renders a picture strip with :func:`colgnn_core.render.render_strip`.
+meshes from the markers and renders a picture strip with :func:`colgnn_core.evaluation.render.render_strip`.
 It prints a summary (steps, step ms, end-to-end pose→marker latency, collisions before and after
 the correction) and writes it as JSON. Outputs, under ``--out`` (``out/demo``)::
 
@@ -32,8 +32,21 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
+from colgnn_core.collision.exact import has_intersections
+from colgnn_core.collision.metrics import triangle_pairs_intersecting
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import stats
+from colgnn_core.evaluation.render import render_strip
+from colgnn_core.io import Sequence
+from colgnn_core.learn.checkpoint import CheckpointMeta, read_checkpoint
+from colgnn_core.runtime.models import shipped_checkpoint
+from msg_tools import diagnostic_values, msg_to_counts, pose_to_array, stamp_to_ns
+from msg_tools.recorder import TopicRecorder, read_bag_messages
 
 MESSAGE_WAIT_S = 60.0     # start-up budget: both nodes up and matched (torch + model load)
 QUIET_AFTER_S = 1.0       # after the last pose: stop once no mesh arrived for this long
@@ -60,18 +73,10 @@ def stop(proc: subprocess.Popen | None, sig: int = signal.SIGINT, timeout: float
     return proc.returncode
 
 
-def percentiles(values, qs=(50, 95)) -> list[float]:
-    a = np.asarray(values, dtype=np.float64)
-    return [float(np.percentile(a, q)) if a.size else float("nan") for q in qs]
-
-
 # ----------------------------------------------------------------------------- reading the recording
 
 def read_recording(bag: Path, scene) -> dict:
     """The recorded run as arrays: meshes/tools per step, their stamps and receive times, counts, poses, diagnostics."""
-    from msg_tools import diagnostic_values, msg_to_counts, pose_to_array, stamp_to_ns
-    from msg_tools.recorder import read_bag_messages
-
     faces = np.asarray(scene.object.faces, dtype=np.int64)
     surface_ids = np.unique(faces)
     local = np.full(scene.object.vertices.shape[0], -1, dtype=np.int64)
@@ -126,9 +131,6 @@ def strip_frames(tool_z: np.ndarray, count: int = 5) -> list[int]:
 
 
 def render(rec: dict, scene, out: Path, label: str) -> Path:
-    from colgnn_core.io import Sequence
-    from colgnn_core.render import render_strip
-
     seq = Sequence(object_positions=rec["object"], object_faces=rec["faces"], tool_positions=rec["tool"],
                    tool_faces=np.asarray(scene.tool.faces, dtype=np.int64), tool_poses=rec["poses"],
                    dt=float(scene.dt)).validate("recording")
@@ -137,7 +139,7 @@ def render(rec: dict, scene, out: Path, label: str) -> Path:
 
 def summarise(rec: dict, published: int) -> dict:
     latency_ms = (rec["received_ns"] - rec["stamps"]) * 1e-6
-    med, p95 = percentiles(latency_ms)
+    latency = stats(latency_ms, empty=float("nan"))
     last = rec["diagnostics"][-1] if rec["diagnostics"] else {}
     total = {k: int(sum(c.get(k, 0) for c in rec["counts"])) for k in
              ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
@@ -149,8 +151,8 @@ def summarise(rec: dict, published: int) -> dict:
         "steps": int(last.get("steps", len(rec["stamps"]))),
         "step_ms_median": float(last.get("step_ms_median", "nan")),
         "step_ms_p95": float(last.get("step_ms_p95", "nan")),
-        "latency_ms_median": med,
-        "latency_ms_p95": p95,
+        "latency_ms_median": latency["median"],
+        "latency_ms_p95": latency["p95"],
         "rejected_poses": int(last.get("rejected_total", 0)),
         "collisions_before": {"vertex_face": total["vertex_face_before"], "edge_edge": total["edge_edge_before"]},
         "collisions_after": {"vertex_face": total["vertex_face_after"], "edge_edge": total["edge_edge_after"]},
@@ -163,9 +165,6 @@ def exact_check(rec: dict, scene, every: int = 10) -> tuple[int, int]:
     """(frames whose object and tool triangles intersect, of all recorded steps;
     frames where ipctk.has_intersections, which also counts object self-intersections, finds any, of every
     ``every``-th step)."""
-    from colgnn_core.collision.exact import has_intersections
-    from colgnn_core.collision.metrics import triangle_pairs_intersecting
-
     faces, tool_faces = rec["faces"], np.asarray(scene.tool.faces, dtype=np.int64)
     tool_hits = sum(len(triangle_pairs_intersecting(rec["object"][i], faces, rec["tool"][i], tool_faces)) > 0
                     for i in range(len(rec["stamps"])))
@@ -177,21 +176,11 @@ def exact_check(rec: dict, scene, every: int = 10) -> tuple[int, int]:
 # ----------------------------------------------------------------------------- the run
 
 def run(args: argparse.Namespace) -> int:
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
-    from colgnn_core.learn.checkpoint import CheckpointMeta, read_checkpoint
-    from colgnn_core.rollout import shipped_checkpoint
-    from colgnn_core.scenes import load_scene
-    from msg_tools.recorder import TopicRecorder
-
     checkpoint = Path(args.checkpoint) if args.checkpoint else shipped_checkpoint(args.scene)
     meta = CheckpointMeta(**read_checkpoint(checkpoint)["meta"])
     if meta.scene != args.scene:
         raise InputError(f"--checkpoint {checkpoint} is a {meta.scene!r} model, not {args.scene!r}")
-    scene = load_scene(meta.scene, meta.resolution)
+    scene = meta.load_scene()
     rate = 1.0 / meta.dt
     frames = max(2, int(round(args.duration * rate)))
     out = Path(args.out)
@@ -239,7 +228,8 @@ def run(args: argparse.Namespace) -> int:
             budget = MESSAGE_WAIT_S + frames / rate + 10.0
             finished = spin_while(lambda: publisher.poll() is None and predictor.poll() is None, budget)
             if predictor.poll() is not None:
-                raise RuntimeError(f"the predictor exited with code {predictor.returncode}; see {out / 'predictor.log'}")
+                raise RuntimeError(f"the predictor exited with code {predictor.returncode}; see "
+                                   f"{out / 'predictor.log'}")
             if not finished:
                 raise RuntimeError("interrupted" if interrupted else "the pose publisher did not finish in time")
             if publisher.returncode != 0:

@@ -1,6 +1,6 @@
 """``predictor``: the real-time node. Tool poses in, the deforming object mesh out.
 
-A thin shell over :class:`colgnn_core.predictor.Predictor` (GNN step + collision-aware correction)
+A thin shell over :class:`colgnn_core.runtime.predictor.Predictor` (GNN step + collision-aware correction)
 and msg_tools (marker bytes, counts, diagnostics):
 
 - in: ``tool_pose`` (geometry_msgs/PoseStamped, best-effort, depth 1). The callback only stores the
@@ -42,7 +42,10 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import validate_pose
+from colgnn_core.runtime.models import shipped_checkpoint
+from colgnn_core.runtime.predictor import Predictor
 from colgnn_core.scenes import scene_names
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS, ParamSpec, declare_parameters, run_node
 from msg_tools.conversions import NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array, stamp_to_ns
@@ -152,9 +155,6 @@ class PredictorNode(Node):
 
     # -- set-up -----------------------------------------------------------------------------------------------------
     def _load_predictor(self, p: dict):
-        from colgnn_core.predictor import Predictor
-        from colgnn_core.rollout import shipped_checkpoint
-
         path = p["checkpoint"] or str(shipped_checkpoint(p["scene"]))
         self.checkpoint_name = path
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
@@ -287,15 +287,15 @@ class PredictorNode(Node):
     # -- diagnostics ------------------------------------------------------------------------------------------------
     def diagnostics_values(self) -> dict[str, object]:
         """The /diagnostics key-values (also handy in tests)."""
-        ms = np.asarray(self._step_ms, dtype=np.float64)
+        step = stats(self._step_ms, empty=0.0)
         now = time.monotonic()
         recent = [t for t in self._step_times if now - t <= 5.0]
         rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
         values: dict[str, object] = {
             "scene": self.scene.name,
             "dt_s": self.dt,
-            "step_ms_median": float(np.median(ms)) if ms.size else 0.0,
-            "step_ms_p95": float(np.percentile(ms, 95)) if ms.size else 0.0,
+            "step_ms_median": step["median"],
+            "step_ms_p95": step["p95"],
             "rate_hz": float(rate),
         }
         values.update(self.stats)

@@ -36,7 +36,11 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+import rclpy
 from geometry_msgs.msg import Point
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
@@ -152,11 +156,6 @@ def _bench_publish(builder: TriangleListMarker, msg: Marker, frames, vcols, repe
     the raw subscription's callback, parse with parse_marker_cdr (one process,
     through Fast DDS, no intra-process shortcut in rclpy).
     """
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "97")))

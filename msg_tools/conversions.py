@@ -1,6 +1,6 @@
 """Conversions between ROS 2 messages and numpy arrays.
 
-Conventions (see ARCHITECTURE.md): poses are ``[px, py, pz, qx, qy, qz, qw]``
+Conventions (docs/ARCHITECTURE.md, "Contracts"): poses are ``[px, py, pz, qx, qy, qz, qw]``
 (metres, unit quaternion in ROS xyzw order); time stamps are integer
 nanoseconds where a single number is needed.
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import serialize_message
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
 
@@ -50,7 +50,7 @@ _SENTINEL_STAMP = (1_234_567_891, 987_654_321)
 @functools.cache
 def jazzy_typestore():
     """rosbags' typestore of the ROS 2 Jazzy message definitions (loaded once)."""
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_typestore  # lazy: rosbags loads only when a bag is written or read
 
     return get_typestore(Stores.ROS2_JAZZY)
 
@@ -218,10 +218,6 @@ class TriangleListMarker:
             raise ValueError("this marker has one colour; build it with per_vertex_colors=True for colors")
         np.take(v, self._flat_faces, axis=0, out=self._points)
         return self._buf.tobytes()
-
-    def build_message(self, vertices: np.ndarray, stamp: Time | int, **kwargs) -> Marker:
-        """The same frame as a Marker object (slow: for tests and non-real-time use)."""
-        return deserialize_message(self.build(vertices, stamp, **kwargs), Marker)
 
 
 class DistanceColormap:

@@ -33,6 +33,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.signals import SignalHandlerOptions
+
+from .markers import jazzy_typestore, parse_marker_cdr
+
 DEFAULT_TOPICS: dict[str, str] = {
     "deformed_mesh": "visualization_msgs/msg/Marker",
     "tool_marker": "visualization_msgs/msg/Marker",
@@ -74,11 +83,11 @@ def _normalise_type(msgtype: str | type) -> str:
 
 def _rosbags_qos(qos: Any | None) -> Any:
     """rclpy QoSProfile (or None: reliable, volatile, keep last 10) -> rosbags Qos for metadata."""
-    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.interfaces import (  # lazy: rosbags loads only when a bag is written or read
+        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime)
 
     reliable, transient, depth = True, False, 10
     if qos is not None:
-        from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 
         reliable = qos.reliability != ReliabilityPolicy.BEST_EFFORT
         transient = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -104,6 +113,7 @@ class BagWriter:
     """
 
     def __init__(self, path: str | os.PathLike, *, compression: str | None = None) -> None:
+        # lazy: rosbags loads only when a bag is written or read
         from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
         self.path = Path(path).absolute()
@@ -125,8 +135,6 @@ class BagWriter:
 
     def add_topic(self, topic: str, msgtype: str | type, qos: Any | None = None) -> None:
         """Register a fully qualified topic (e.g. '/deformed_mesh') with its type and offered QoS."""
-        from .markers import jazzy_typestore
-
         msgtype = _normalise_type(msgtype)
         ts = jazzy_typestore()
         if msgtype not in ts.types:
@@ -152,8 +160,6 @@ class BagWriter:
 
     def write_message(self, topic: str, msg: Any, timestamp_ns: int) -> None:
         """Serialize an rclpy message with rclpy and append it."""
-        from rclpy.serialization import serialize_message
-
         self.write(topic, serialize_message(msg), timestamp_ns)
 
     def close(self) -> Path:
@@ -209,8 +215,6 @@ class TopicRecorder:
     def __init__(self, node: Any, path: str | os.PathLike,
                  topics: Mapping[str, str | type] | None = None, *,
                  qos: Mapping[str, Any] | None = None, compression: str | None = None) -> None:
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
         self.node = node
         self.writer = BagWriter(path, compression=compression)
         self._subs = []
@@ -286,7 +290,7 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None) -> It
 
     topics: fully qualified names to keep (all when None); an unknown name is a ValueError.
     """
-    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2 import Reader  # lazy: rosbags loads only when a bag is written or read
 
     with Reader(Path(path)) as reader:
         conns = reader.connections
@@ -312,16 +316,10 @@ def read_bag_messages(path: str | os.PathLike, topics: Iterable[str] | None = No
     if deserializer not in ("rclpy", "rosbags", "marker"):
         raise ValueError(f"deserializer must be 'rclpy', 'rosbags' or 'marker', got {deserializer!r}")
     if deserializer == "rosbags":
-        from .markers import jazzy_typestore
-
         ts = jazzy_typestore()
         for m in read_bag(path, topics):
             yield m.topic, m.timestamp_ns, ts.deserialize_cdr(m.data, m.msgtype)
         return
-    from rclpy.serialization import deserialize_message
-
-    from .markers import parse_marker_cdr
-
     classes: dict[str, type] = {}
     for m in read_bag(path, topics):
         if deserializer == "marker" and m.msgtype == "visualization_msgs/msg/Marker":
@@ -336,8 +334,8 @@ def bag_summary(path: str | os.PathLike) -> dict:
 
     {'storage', 'duration_s', 'start_ns', 'message_count', 'topics': {topic: {'type', 'count'}}}
     """
-    from rosbags.rosbag2 import Reader
-    from ruamel.yaml import YAML  # a rosbags dependency
+    from rosbags.rosbag2 import Reader  # lazy: rosbags loads only when a bag is written or read
+    from ruamel.yaml import YAML  # lazy: a rosbags dependency, for a bag's metadata
 
     path = Path(path)
     meta = YAML(typ="safe").load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
@@ -359,11 +357,6 @@ def record(path: str | os.PathLike, duration_s: float, topics: Mapping[str, str]
     Initialises its own rclpy context (ROS_DOMAIN_ID etc. from the environment)
     and returns the message count per topic. The bag is complete on return.
     """
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
     if not duration_s > 0:
         raise ValueError(f"duration must be > 0 s, got {duration_s}")
     ctx = Context()

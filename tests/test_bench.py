@@ -5,10 +5,11 @@ import math
 
 import pytest
 
-import _train_fixtures as fx
-from colgnn_core.bench import bench, format_bench, rmse_fraction
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import rmse_fraction
+from colgnn_core.evaluation.speed import bench, format_bench
+from tests.helpers import train_data as fx
 
 CONTRACT = ("total_ms", "graph_ms", "gnn_ms", "correction_ms", "ipc_ms")
 

@@ -147,7 +147,7 @@ def test_non_convex_tool_disables_sdf_culling():
 
 
 def test_cone_bunny_contact_step_keeps_every_exact_hit():
-    from colgnn_core.collision.benchmark import contact_step
+    from colgnn_core.evaluation.collision_speed import contact_step
     from colgnn_core.scenes import load_scene
 
     scene = load_scene("cone_bunny", "ci")

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from _learn_fixtures import box_and_sphere
 from colgnn_core.errors import InputError
 from colgnn_core.learn.checkpoint import (CheckpointMeta, capture_rng_state, check_compatible, read_checkpoint,
                                           restore_rng_state, save_checkpoint, simulator_from_payload)
 from colgnn_core.learn.losses import loss_q
 from colgnn_core.learn.model import Frame, ModelConfig, Simulator
+from tests.helpers.learn_meshes import box_and_sphere
 
 torch.set_num_threads(1)
 
@@ -124,7 +124,7 @@ def test_weights_that_do_not_fit_the_template_are_rejected(tmp_path):
 def test_scene_checkpoint_round_trip_and_wrong_scene(tmp_path):
     from dataclasses import replace
 
-    from colgnn_core.learn.checkpoint import load_checkpoint
+    from colgnn_core.learn.registry import load_checkpoint
     from colgnn_core.learn.graph import template_from_scene
     from colgnn_core.scenes import load_scene
 

@@ -43,7 +43,8 @@ def test_module_entry_point_exit_code():
 
 def test_generate_bad_shard_exits_2_with_the_rule(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
-        main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--shard", "3/2"])
+        main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--shard",
+              "3/2"])
     assert exc.value.code == 2
     assert "0 <= I < N" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
@@ -59,15 +60,18 @@ def test_generate_bad_shard_exits_2_with_the_rule(tmp_path, capsys):
 )
 def test_generate_malformed_poses_exits_2(tmp_path, capsys, body, message):
     (tmp_path / "p.csv").write_text(body)
-    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--poses", str(tmp_path / "p.csv")])
+    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--poses",
+                 str(tmp_path / "p.csv")])
     assert code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 
 
 def test_generate_pose_outside_workspace_exits_2(tmp_path, capsys):
-    write_poses_csv(tmp_path / "p.csv", np.array([0.0, 0.04]), np.array([[0, 0, 0.3, 0, 0, 0, 1.0], [0, 0, 50.0, 0, 0, 0, 1.0]]))
-    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--poses", str(tmp_path / "p.csv")])
+    write_poses_csv(tmp_path / "p.csv", np.array([0.0, 0.04]), np.array([[0, 0, 0.3, 0, 0, 0, 1.0], [0, 0, 50.0, 0, 0,
+                                                                                                     0, 1.0]]))
+    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(tmp_path / "o"), "--poses",
+                 str(tmp_path / "p.csv")])
     assert code == 2
     assert "workspace" in capsys.readouterr().err
 
@@ -75,7 +79,8 @@ def test_generate_pose_outside_workspace_exits_2(tmp_path, capsys):
 def test_generate_unwritable_output_exits_2(tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(blocker / "o"), "--sequences", "1", "--frames", "2"])
+    code = main(["generate", "--scene", "sphere_mat", "--resolution", "ci", "--out", str(blocker / "o"), "--sequences",
+                 "1", "--frames", "2"])
     assert code == 2
     assert "output folder" in capsys.readouterr().err
 

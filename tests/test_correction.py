@@ -18,28 +18,15 @@ import pytest
 import torch
 
 from colgnn_core.collision.correction import CollisionCorrector, certify_triangles, rigid_step
-from colgnn_core.collision.exact import tool_intersects, tool_step_free
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import family_poses
+from colgnn_core.evaluation.stability import check_rollout, hard_cases
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
-from colgnn_core.learn.checkpoint import CheckpointMeta, LoadedCheckpoint
 from colgnn_core.learn.graph import template_from_scene
-from colgnn_core.learn.model import ModelConfig, Simulator
-from colgnn_core.scenes import load_scene, scene_names
-from colgnn_core.stability import check_rollout, family_poses, hard_cases
+from colgnn_core.scenes import load_scene
+from tests.helpers.correction_cases import make_model, oracle_intersects, oracle_step_free
 
 torch.set_num_threads(1)
-
-
-# -- the oracle (ipctk) ---------------------------------------------------------------------------------------------
-def oracle_intersects(object_V, object_F, tool_V, tool_F) -> bool:
-    """ipctk: does the object surface intersect the tool?"""
-    return tool_intersects(object_V, object_F, tool_V, tool_F)
-
-
-def oracle_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, *, contact_only: bool = False) -> bool:
-    """ipctk Tight-Inclusion CCD: is the linear step of object surface and tool contact-free? (see
-    :func:`colgnn_core.collision.exact.tool_step_free`: stricter than "no contact" unless ``contact_only``)."""
-    return tool_step_free(object_V0, object_V1, object_F, tool_V0, tool_V1, tool_F, contact_only=contact_only)
 
 
 def test_oracle_sees_tool_contact_and_ignores_self_contact():
@@ -65,33 +52,13 @@ def test_oracle_sees_tool_contact_and_ignores_self_contact():
     assert self_intersects(crushed, F) and not oracle_intersects(crushed, F, T, TF)
 
 
-# -- real networks with controlled output -----------------------------------------------------------------------------
-def make_model(scene, kind: str, *, scale: float = 2e-4, seed: int = 0) -> LoadedCheckpoint:
-    """A real Simulator (latent 16, 2 steps): 'static' (zero decoder: no acceleration) or 'noisy' (random
-    weights, output std ``scale`` m: random accelerations of about the size of real ones)."""
-    cfg = ModelConfig.from_scene(scene, latent=16, message_passing_steps=2, mlp_layers=1)
-    tpl = template_from_scene(scene, surface_only=cfg.surface_only, world_radius=cfg.world_radius)
-    torch.manual_seed(seed)
-    sim = Simulator(tpl, cfg)
-    with torch.no_grad():
-        if kind == "static":
-            for p in sim.core.decoder.parameters():
-                p.zero_()
-        elif kind == "noisy":
-            sim.output_normalizer.accumulate(torch.randn(4096, 3, dtype=torch.float64) * scale)
-        else:
-            raise ValueError(kind)
-    sim.eval()
-    return LoadedCheckpoint(sim, CheckpointMeta.for_scene(scene, "full"), cfg, None, None, None, {})
-
-
 @functools.lru_cache(maxsize=None)
 def ci_scene(name: str):
     return load_scene(name, "ci")
 
 
 def run_checked(pred, poses: np.ndarray, check_every: int = 1) -> dict:
-    """Step ``pred`` through poses[1:] with the oracle checks of :func:`colgnn_core.stability.check_rollout`;
+    """Step ``pred`` through poses[1:] with the oracle checks of :func:`colgnn_core.evaluation.stability.check_rollout`;
     the Predictor must report every step clean after its correction."""
     stats = check_rollout(pred, poses, check_every)
     assert stats["after_nonzero"] == 0, stats
@@ -102,7 +69,7 @@ def predictor(scene, kind="static", **kw):
     """A Predictor on a real untrained network. Its random (or zero) accelerations would let the object
     drift away from the tool over a long run, so nodes are held within 4 mm of rest (the Predictor's
     ``max_deviation`` cap, applied before the correction): the object keeps meeting the tool."""
-    from colgnn_core.predictor import Predictor
+    from colgnn_core.runtime.predictor import Predictor
 
     kw.setdefault("max_deviation", 0.004)
     return Predictor(make_model(scene, kind), scene, threads=1, **kw)
@@ -306,7 +273,7 @@ def test_random_motion_with_tilts_2000_steps(name):
 # -- the shipped full-resolution model on the hard cases ------------------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def _shipped(name: str):
-    from colgnn_core.predictor import Predictor
+    from colgnn_core.runtime.predictor import Predictor
 
     return Predictor.from_checkpoint(name, threads=1)
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_to_matrix
-from colgnn_core.sim.elasticity import _HJ_BASIS, StableNeoHookean, lame_parameters, lumped_mass
-from simhelpers import box_tet_mesh
+from colgnn_core.sim.elasticity import HJ_BASIS, StableNeoHookean, lame_parameters, lumped_mass
+from tests.helpers.sim_scenes import box_tet_mesh
 
 RUBBER = SimpleNamespace(youngs_modulus=1e5, poisson_ratio=0.4, density=1000.0)
 
@@ -143,7 +143,7 @@ def test_analytic_psd_projection_equals_eigen_clamping():
     # Project the 9×9 numerically: H12 = Dᵀ H_F D, so compare through the same map.
     _, ic, j, cof, dpsi, d2psi = e._stress(f)
     s = 1.0 / (1.0 + ic)
-    hf_exact = np.einsum("kn,ijn->kij", f.reshape(-1, 9), _HJ_BASIS) * dpsi[:, None, None]
+    hf_exact = np.einsum("kn,ijn->kij", f.reshape(-1, 9), HJ_BASIS) * dpsi[:, None, None]
     hf_exact += (2 * e.mu * s * s)[:, None, None] * np.einsum("ki,kj->kij", f.reshape(-1, 9), f.reshape(-1, 9))
     hf_exact += d2psi[:, None, None] * np.einsum("ki,kj->kij", cof.reshape(-1, 9), cof.reshape(-1, 9))
     hf_exact[:, np.arange(9), np.arange(9)] += (e.mu * (1 - s))[:, None]

@@ -1,4 +1,4 @@
-"""``colgnn evaluate`` on the tiny trained model and tiny real dataset of _train_fixtures."""
+"""``colgnn evaluate`` on the tiny trained model and tiny real dataset of tests.helpers.train_data."""
 
 import json
 import math
@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-import _train_fixtures as fx
-from colgnn_core.bench import rmse_fraction
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
-from colgnn_core.evaluate import _finite, evaluate
+from colgnn_core.evaluation.accuracy import evaluate
+from colgnn_core.evaluation.measure import finite, rmse_fraction
 from colgnn_core.io import load_sequence
-from colgnn_core.rollout import rollout
+from colgnn_core.runtime.rollout import rollout
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 
@@ -34,7 +34,7 @@ def test_evaluate_reports_finite_metrics_and_writes_the_files(result):
     assert data["scene"] == fx.SCENE and data["resolution"] == "ci" and data["modes"] == ["raw", "corrected"]
     assert data["sequences"] == [p.name for p in sorted(fx.dataset_dir().glob("test_*.npz"))]
     assert set(data["rows"]) == {"ground_truth", "raw", "corrected"}
-    assert _finite(data)
+    assert finite(data)
     for key, row in data["rows"].items():
         c = row["collisions"]
         for k in CROSSING + ("intersecting_frames", "frames", "steps"):
@@ -117,6 +117,6 @@ def test_frontier_points_table_and_plot(tmp_path, capsys):
     assert (out / "frontier.png").stat().st_size > 10_000
     assert "| method | ms/step" in (out / "frontier.md").read_text() and "wrote" in capsys.readouterr().out
     with pytest.raises(InputError, match="at least one checkpoint"):
-        from colgnn_core.frontier import frontier
+        from colgnn_core.evaluation.frontier import frontier
 
         frontier(fx.SCENE, [], fx.dataset_dir(), tmp_path)

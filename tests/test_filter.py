@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-import collision_cases as cc
 from colgnn_core.collision import exact
 from colgnn_core.collision.filter import (bernstein_coefficients, filter_edge_edge, filter_edge_edge_torch,
                                           filter_vertex_face, filter_vertex_face_torch)
 from colgnn_core.errors import InputError
+from tests.helpers import collision_cases as cc
 
 GENERATORS = (cc.random_pairs, cc.colliding_vf, cc.colliding_ee, cc.near_coplanar, cc.parallel_edges,
               cc.zero_motion, cc.degenerate_triangles)

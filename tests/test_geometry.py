@@ -52,7 +52,8 @@ def test_validate_names_problems():
     with pytest.raises(ValueError, match="not used"):
         TetMesh.from_tets(np.concatenate([UNIT_TET, [[5.0, 5, 5]]]), [[0, 1, 2, 3]]).validate()
     # A sliver 1e-9 below the base of the unit tet: positive but degenerate.
-    sliver = TetMesh.from_tets(np.concatenate([UNIT_TET, [[0.2, 0.2, -1e-9]]]), [[0, 1, 2, 3], [0, 2, 1, 4]], orient=True)
+    sliver = TetMesh.from_tets(np.concatenate([UNIT_TET, [[0.2, 0.2, -1e-9]]]), [[0, 1, 2, 3], [0, 2, 1, 4]],
+                               orient=True)
     with pytest.raises(ValueError, match="degenerate"):
         sliver.validate()
 
@@ -133,7 +134,8 @@ def test_sweep_prisms_is_conforming_for_any_vertex_order():
     perm = np.random.default_rng(0).permutation(len(pts))
     inv = np.argsort(perm)
     m = sweep_prisms(pts[perm], inv[tri], 4, lambda l, q: np.concatenate(
-        [np.broadcast_to(q, (len(l),) + q.shape), np.broadcast_to(0.1 * l[:, None, None], (len(l), len(q), 1))], axis=-1))
+        [np.broadcast_to(q, (len(l),) + q.shape), np.broadcast_to(0.1 * l[:, None, None], (len(l), len(q),
+                                                                                           1))], axis=-1))
     m.validate()
     assert np.all(tet_signed_volumes(m.vertices, m.tets) > 0)
 

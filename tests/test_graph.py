@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from _learn_fixtures import box_and_sphere, box_tet_mesh, sphere_points, sphere_sdf
 from colgnn_core.learn.graph import (NODE_OBJECT, NODE_PINNED, NODE_TOOL, build_graph, face_edges, find_world_edges,
                                      lift_to_mesh, make_template, tet_edges)
+from tests.helpers.learn_meshes import box_and_sphere, box_tet_mesh, sphere_points, sphere_sdf
 
 torch.set_num_threads(1)
 
@@ -168,7 +168,7 @@ def test_world_edges_with_scene_tool_sdf_match_brute_force(name):
     x = tpl.rest.numpy() + rng.normal(scale=5e-4, size=tpl.rest.shape)
     lo, hi = scene.object_bbox()
     total = 0
-    for k in range(4):
+    for _ in range(4):
         pose = np.concatenate([rng.uniform(lo, hi), axis_angle_quat(rng.normal(size=3), rng.uniform(0, 0.6))])
         tool = scene.tool.world_vertices(pose)
         i, j = find_world_edges(x, tool, tpl.world_radius, tpl.tool_sdf, pose, tpl.sdf_margin)

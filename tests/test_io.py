@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from colgnn_core.errors import InputError
-from colgnn_core.geometry.transforms import axis_angle_quat, interpolate_poses, quat_to_matrix, transform_points, inverse_transform_points, validate_pose
+from colgnn_core.geometry.transforms import (axis_angle_quat, interpolate_poses, inverse_transform_points,
+                                             quat_to_matrix, transform_points, validate_pose)
 from colgnn_core.io import Sequence, atomic_write, load_sequence, read_poses_csv, save_sequence, write_poses_csv
 
 
@@ -121,7 +122,8 @@ def test_pose_validation_and_transforms():
     np.testing.assert_allclose(inverse_transform_points(world, pose), pts, atol=1e-12)
     mid = interpolate_poses(np.array([0, 0, 0, 0, 0, 0, 1.0]), pose, [0.5])[0]
     np.testing.assert_allclose(mid[:3], [0.5, 1, 1.5])
-    np.testing.assert_allclose(quat_to_matrix(mid[3:]) @ [1, 0, 0], [np.cos(np.pi / 4), np.sin(np.pi / 4), 0], atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(mid[3:]) @ [1, 0, 0], [np.cos(np.pi / 4), np.sin(np.pi / 4), 0],
+                               atol=1e-12)
 
 
 def test_atomic_write_gives_usual_permissions(tmp_path):

@@ -7,7 +7,7 @@ from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.io import Sequence
 from colgnn_core.sim.dataset import simulate_sequence
 from colgnn_core.sim.ipc import IPCSimulator
-from simhelpers import assert_sequence_crossing_free, box_scene
+from tests.helpers.sim_scenes import assert_sequence_crossing_free, box_scene
 
 
 def test_body_without_forces_stays_exactly_at_rest():

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from _learn_fixtures import box_and_sphere, box_tet_mesh
 from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, make_mlp, sum_to_receivers
 from colgnn_core.learn.losses import kl_latent, loss_q
 from colgnn_core.learn.model import Frame, ModelConfig, Simulator
+from tests.helpers.learn_meshes import box_and_sphere, box_tet_mesh
 
 torch.set_num_threads(1)
 

@@ -74,7 +74,7 @@ def random_mesh(rng: np.random.Generator, n: int, f: int) -> tuple[np.ndarray, n
 
 # ----------------------------------------------------------------------------- ROS fixtures
 
-from rostest_utils import node, ros, spin_until  # noqa: E402,F401  (pytest fixtures, shared with the colgnn_ros tests)
+from tests.helpers.ros import spin_until  # noqa: E402
 
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -310,7 +310,7 @@ def _publish_node_topics(node, executor, rec_counts, n: int):
         for topic, item in items.items():
             pubs[topic].publish(item)
             sent[topic].append(item)
-        spin_until(executor, lambda: all(c >= i + 1 for c in rec_counts().values()), timeout=2.0)
+        spin_until(executor, lambda i=i: all(c >= i + 1 for c in rec_counts().values()), timeout=2.0)
     assert spin_until(executor, lambda: all(c >= n for c in rec_counts().values()))
     for p in pubs.values():
         node.destroy_publisher(p)

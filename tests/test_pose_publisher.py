@@ -1,7 +1,7 @@
 """`pose_publisher` on real rclpy + Fast DDS: parameters, poses through DDS, rate, loop, signals.
 
 The node runs in its own process (``python -m colgnn_ros.pose_publisher_node``), reached only
-through DDS on an isolated domain (see rostest_utils); the parameter checks also run in-process.
+through DDS on an isolated domain (the ``ros`` fixture, tests/conftest.py); the parameter checks also run in-process.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import finish, node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+pytest.importorskip("rclpy")
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
@@ -26,9 +26,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from colgnn_core.errors import InputError  # noqa: E402
 from colgnn_core.io import write_poses_csv  # noqa: E402
 from colgnn_core.scenes import load_scene, scripted_poses  # noqa: E402
-from colgnn_ros.common import POSE_QOS  # noqa: E402
 from colgnn_ros.pose_publisher_node import PARAMETERS, PosePublisher  # noqa: E402
 from msg_tools import pose_to_array, stamp_to_ns  # noqa: E402
+from tests.helpers.ros import finish, ros_env, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable

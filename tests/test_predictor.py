@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-import _train_fixtures as fx
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
 from colgnn_core.io import load_sequence
-from colgnn_core.predictor import (SETTLE_AFTER_STEPS, SETTLE_RAMP_STEPS, Predictor, StepResult,
+from colgnn_core.runtime.predictor import (SETTLE_AFTER_STEPS, SETTLE_RAMP_STEPS, Predictor, StepResult,
                                    tool_step_limits)
-from colgnn_core.rollout import rollout
-from test_correction import make_model, oracle_intersects, oracle_step_free
+from colgnn_core.runtime.rollout import rollout
+from tests.helpers import train_data as fx
+from tests.helpers.correction_cases import make_model, oracle_intersects, oracle_step_free
 
 torch.set_num_threads(1)
 
@@ -36,7 +36,7 @@ def _pred(scene, kind="noisy", **kw):
 
 
 def _state(p: Predictor):
-    return p.positions, p.graph_positions, p.tool_pose, p.steps, p._net.x_prev.numpy().copy()
+    return p.positions, p.graph_positions, p.tool_pose, p.steps, p.net.state.x_prev.numpy().copy()
 
 
 def _assert_same_state(a, b):
@@ -85,7 +85,7 @@ def test_threads_and_no_autograd(scene):
         assert torch.get_num_threads() == 2 and p.threads == 2
         r = p.step(_contact_poses(scene, 3)[1])
         assert isinstance(r.positions, np.ndarray)
-        assert not p._net.x_t.requires_grad
+        assert not p.net.state.x_t.requires_grad
     finally:
         torch.set_num_threads(before)
     with pytest.raises(InputError, match="threads"):
@@ -151,7 +151,8 @@ def test_step_limits_come_from_the_training_family(scene):
     fam = scene.family
     assert trans >= 1.5 * max(fam["speed"]) * max(fam["retract_speed_factor"]) - 1e-12
     assert math.radians(2.0) <= rot < math.radians(45.0)
-    assert tool_step_limits(scene, {"tool_step_max_translation": 0.001, "tool_step_max_rotation": 0.01}) == (0.001, 0.01)
+    assert tool_step_limits(scene, {"tool_step_max_translation": 0.001, "tool_step_max_rotation": 0.01}) == (0.001,
+                                                                                                             0.01)
 
 
 def test_large_jump_is_split_into_model_steps(scene):
@@ -206,9 +207,9 @@ def test_rollout_with_correction_goes_through_the_predictor(scene, ckpt):
 
 
 def test_from_checkpoint_needs_a_model(scene, tmp_path, monkeypatch):
-    import colgnn_core.rollout
+    import colgnn_core.runtime.models
 
-    monkeypatch.setattr(colgnn_core.rollout, "MODEL_DIR", tmp_path)  # a package without models
+    monkeypatch.setattr(colgnn_core.runtime.models, "MODEL_DIR", tmp_path)  # a package without models
     with pytest.raises(InputError, match="no shipped model for scene 'knife_torus'"):
         Predictor.from_checkpoint("knife_torus")
     with pytest.raises(InputError, match="no such checkpoint"):
@@ -235,7 +236,7 @@ def test_stability_report_short_run(ckpt):
     """colgnn bench --stability on a short run: the report's fields, no object-tool intersection, and a
     hand-checked rigid shape error (a rotated, shifted rest shape is at rest)."""
     from colgnn_core.geometry.transforms import quat_to_matrix
-    from colgnn_core.stability import format_stability, rigid_shape_error, stability
+    from colgnn_core.evaluation.stability import format_stability, rigid_shape_error, stability
 
     r = stability(str(ckpt), steps=30, settle=5, check_every=5, memory_every=10, threads=1, progress=False)
     assert r["steps_done"] == 30 + r["leave_and_settle_steps"] and r["leave_and_settle_steps"] >= 6
@@ -254,15 +255,15 @@ def test_stability_report_short_run(ckpt):
 
 def test_from_checkpoint_data_limits(ckpt):
     """limits='data': the caps come from the checkpoint's training-data statistics; explicit values win."""
-    from colgnn_core.rollout import DATA_DEVIATION_FACTOR, DATA_STEP_FACTOR, load_model
+    from colgnn_core.runtime.models import DATA_DEVIATION_FACTOR, DATA_STEP_FACTOR, load_model
 
     stats = load_model(str(ckpt)).extra["data_stats"]
     p = Predictor.from_checkpoint(ckpt, threads=1, limits="data")
-    assert p._net.max_displacement == pytest.approx(DATA_STEP_FACTOR * stats["max"])
-    assert p._net.max_deviation == pytest.approx(DATA_DEVIATION_FACTOR * stats["max_deviation"])
+    assert p.net.max_displacement == pytest.approx(DATA_STEP_FACTOR * stats["max"])
+    assert p.net.max_deviation == pytest.approx(DATA_DEVIATION_FACTOR * stats["max_deviation"])
     p = Predictor.from_checkpoint(ckpt, threads=1, limits="data", max_deviation=0.5)
-    assert p._net.max_deviation == 0.5
-    assert Predictor.from_checkpoint(ckpt, threads=1)._net.max_deviation is None
+    assert p.net.max_deviation == 0.5
+    assert Predictor.from_checkpoint(ckpt, threads=1).net.max_deviation is None
     with pytest.raises(InputError, match="limits must be"):
         Predictor.from_checkpoint(ckpt, threads=1, limits="tight")
 
@@ -302,7 +303,7 @@ def test_rest_relaxation_pulls_a_released_object_back_to_rest_only_when_the_tool
     touching = 0
     for pose in press[1:]:
         relaxed.step(pose)
-        touching += relaxed._net.world_edges > 0
+        touching += relaxed.net.world_edges > 0
     assert touching > 0 and relaxed.relaxed_steps == len(press) - 1 - touching
     with pytest.raises(InputError, match="rest_relaxation"):
         _pred(scene, rest_relaxation=1.0)
@@ -357,7 +358,7 @@ def test_a_static_tool_out_of_reach_of_the_rest_shape_releases_the_object(scene)
     shift = (tool[j] - rest[nodes][i]) * (1 - 0.5 * p.template.world_radius / d[i, j])
     p.reset(positions=rest + shift)
     p.step(scene.tool_rest_pose)
-    assert p._net.world_edges > 0 and p.relaxed_steps == 1   # in reach of the shifted object, yet released
+    assert p.net.world_edges > 0 and p.relaxed_steps == 1   # in reach of the shifted object, yet released
     for _ in range(SETTLE_AFTER_STEPS + SETTLE_RAMP_STEPS):
         p.step(scene.tool_rest_pose)
     assert np.abs(p.graph_positions - rest[nodes]).max() < 1e-12
@@ -366,4 +367,4 @@ def test_a_static_tool_out_of_reach_of_the_rest_shape_releases_the_object(scene)
     pose = np.asarray(scene.tool_rest_pose, dtype=np.float64).copy()
     pose[:3] += 1e-4 * np.sign(shift)  # a small move, the object still in reach
     moving.step(pose)
-    assert moving._net.world_edges > 0 and moving.relaxed_steps == 0
+    assert moving.net.world_edges > 0 and moving.relaxed_steps == 0

@@ -1,7 +1,7 @@
 """`predictor` on real rclpy + Fast DDS: parameters, stepping, markers, bad input, reset, signals.
 
-The model is the session's tiny cone_bunny ``ci`` checkpoint (tests/_train_fixtures.py). In-process
-tests build the node in the module's private context (rostest_utils); one test runs the node in
+The model is the session's tiny cone_bunny ``ci`` checkpoint (tests/helpers/train_data.py). In-process
+tests build the node in the module's private context (the ``ros`` fixture, tests/conftest.py); one test runs the node in
 its own process (``python -m colgnn_ros.predictor_node``), reaches it only through DDS on an
 isolated domain, and compares the markers it receives with a Predictor run in this process on the
 same checkpoint and poses (and checks them with ipctk).
@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import finish, node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+pytest.importorskip("rclpy")
 
-import _train_fixtures as fx  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
@@ -33,11 +32,13 @@ from visualization_msgs.msg import Marker  # noqa: E402
 from colgnn_core.collision.exact import has_intersections  # noqa: E402
 from colgnn_core.errors import InputError  # noqa: E402
 from colgnn_core.io import load_sequence  # noqa: E402
-from colgnn_core.predictor import RECOMMENDED_REST_RELAXATION, Predictor  # noqa: E402
+from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION, Predictor  # noqa: E402
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS  # noqa: E402
 from colgnn_ros.predictor_node import PARAMETERS, REJECT_REASONS, PredictorNode  # noqa: E402
 from msg_tools import (COLLISION_COUNT_LABELS, array_to_pose_stamped, diagnostic_values, msg_to_counts,  # noqa: E402
                        parse_marker_cdr, weld_corners)
+from tests.helpers import train_data as fx  # noqa: E402
+from tests.helpers.ros import finish, ros_env, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable
@@ -134,7 +135,7 @@ def test_steps_publish_markers_counts_and_diagnostics(node, ros, checkpoint, pos
         k = 6
         for i in range(1, k + 1):  # lock-step: one pose, one mesh
             pub.publish(pose_msg(poses[i], t0 + i * 1000))
-            assert spin_until(executor, lambda: len(meshes) == i and len(counts) == i and len(tools) == i,
+            assert spin_until(executor, lambda i=i: len(meshes) == i and len(counts) == i and len(tools) == i,
                               timeout=10.0), f"no output for pose {i}"
         assert spin_until(executor, lambda: any(diagnostic_values(d, f"predictor: {SCENE}")["steps"] == str(k)
                                                 for d in diags if d.status[0].name == f"predictor: {SCENE}"),
@@ -297,7 +298,7 @@ def test_node_process_through_dds_matches_the_predictor_and_stops_on_sigterm(nod
             stamp = node.get_clock().now().nanoseconds
             pub.publish(array_to_pose_stamped(poses[i], "world", stamp))
             sent.append(stamp)
-            assert spin_until(executor, lambda: len(meshes) == i and len(tools) == i, timeout=10.0), \
+            assert spin_until(executor, lambda i=i: len(meshes) == i and len(tools) == i, timeout=10.0), \
                 f"no mesh for pose {i}"
         spin_until(executor, lambda: False, timeout=0.1)
         proc.send_signal(signal.SIGTERM)

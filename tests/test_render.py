@@ -6,7 +6,7 @@ import trimesh
 
 from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence, save_sequence
-from colgnn_core.render import plane_section, render_file, tool_signed_distance
+from colgnn_core.evaluation.render import plane_section, render_file, tool_signed_distance
 
 
 def _perimeter(segments: np.ndarray) -> float:

@@ -6,12 +6,13 @@ import shutil
 import pytest
 import torch
 
-import _train_fixtures as fx
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
-from colgnn_core.evaluate import _finite
-from colgnn_core.results import model_paths, results
-from colgnn_core.results_report import reduction
+from colgnn_core.evaluation.measure import finite
+from colgnn_core.evaluation.report import model_paths, results
+from colgnn_core.evaluation.report_data import ResultsReport
+from colgnn_core.evaluation.report_markdown import reduction
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 
@@ -36,7 +37,8 @@ def test_report_has_every_table_and_picture(report):
     rep, out = report
     md = (out / "RESULTS.md").read_text()
     data = json.loads((out / "results.json").read_text())
-    assert _finite(data)
+    assert finite(data)
+    assert ResultsReport.from_dict(data).to_dict() == data  # the typed report reads and writes the file as it is
     for heading in ("## Table 1: speed", "## Table 2: collisions", "## Accuracy", "## Speed against error",
                     "## Hard cases", "## Pictures", "## Discussion"):
         assert heading in md
@@ -63,37 +65,37 @@ def test_report_has_every_table_and_picture(report):
 
 def test_frontier_section_from_the_shipped_frontier_checkpoints(report):
     rep, out = report
-    f = rep["scenes"][fx.SCENE]["frontier"]["result"]
+    f = rep.scenes[fx.SCENE].frontier.result
     # the frontier checkpoint plus the scene's full and baseline models, raw and corrected; 3 solver settings
-    assert [p["kind"] for p in f["points"]].count("raw") == 3 and [p["kind"] for p in f["points"]].count("ipc") == 3
-    assert f["steps"] == fx.FRAMES - 1 and f["ipc_sequences"] == f["sequences"][:1]
-    assert all(p["crossings"] == 0 and p["intersecting_frames"] == 0 for p in f["points"] if p["kind"] != "raw")
+    assert [p.kind for p in f.points].count("raw") == 3 and [p.kind for p in f.points].count("ipc") == 3
+    assert f.steps == fx.FRAMES - 1 and f.ipc_sequences == f.sequences[:1]
+    assert all(p.crossings == 0 and p.intersecting_frames == 0 for p in f.points if p.kind != "raw")
     md = (out / "RESULTS.md").read_text()
     assert f"img/{fx.SCENE}_frontier.png" in md and (out / "img" / f"{fx.SCENE}_frontier.png").is_file()
 
 
 def test_reported_reductions_match_the_measured_rows(report):
     rep, out = report
-    rows = rep["scenes"][fx.SCENE]["rows"]
-    base, full = rows["baseline"]["collisions"], rows["full"]["collisions"]
+    rows = rep.scenes[fx.SCENE].rows
+    base, full = rows["baseline"].collisions, rows["full"].collisions
     md = (out / "RESULTS.md").read_text()
-    if base["N_vf"] > 0:
-        r = reduction(full["N_vf"], base["N_vf"])
-        assert abs(r - 100 * (base["N_vf"] - full["N_vf"]) / base["N_vf"]) < 1e-9
-        assert f"{full['N_vf']:.3f} ({-r:+.0f}%)" in md
+    if base.N_vf > 0:
+        r = reduction(full.N_vf, base.N_vf)
+        assert abs(r - 100 * (base.N_vf - full.N_vf) / base.N_vf) < 1e-9
+        assert f"{full.N_vf:.3f} ({-r:+.0f}%)" in md
     assert reduction(1.0, 4.0) == 75.0 and reduction(0.0, 0.0) is None and reduction(2.0, 1.0) == -100.0
 
 
 def test_correction_row_and_hard_cases_are_clean(report):
     rep, _ = report
-    s = rep["scenes"][fx.SCENE]
-    c = s["rows"]["full+correction"]["collisions"]
-    assert c["N_vf_total"] == 0 and c["N_ee_total"] == 0 and c["intersecting_frames"] == 0
-    assert set(s["hard_cases"]) == {"test sequence", "3x faster", "grazing", "jitter", "leave and re-enter",
-                                    "random with tilts"}
-    for case, h in s["hard_cases"].items():
-        assert h["finite"] and h["intersecting"] == 0 and h["contact"] == 0 and h["after_nonzero"] == 0, (case, h)
-    assert s["hard_cases"]["random with tilts"]["steps"] == 30
+    s = rep.scenes[fx.SCENE]
+    c = s.rows["full+correction"].collisions
+    assert c.N_vf_total == 0 and c.N_ee_total == 0 and c.intersecting_frames == 0
+    assert set(s.hard_cases) == {"test sequence", "3x faster", "grazing", "jitter", "leave and re-enter",
+                                 "random with tilts"}
+    for case, h in s.hard_cases.items():
+        assert h.finite and h.intersecting == 0 and h.contact == 0 and h.after_nonzero == 0, (case, h)
+    assert s.hard_cases["random with tilts"].steps == 30
 
 
 def test_model_paths_and_bad_arguments(tmp_path):

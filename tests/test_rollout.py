@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-import _train_fixtures as fx
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses
 from colgnn_core.io import load_sequence, save_sequence
-from colgnn_core.learn.checkpoint import load_checkpoint
 from colgnn_core.learn.model import Frame
-from colgnn_core.rollout import rollout
+from colgnn_core.learn.registry import load_checkpoint
+from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import sample_poses
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 

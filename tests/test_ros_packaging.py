@@ -27,19 +27,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rostest_utils import node, ros, ros_env, spin_until  # noqa: F401  (pytest fixtures)
+pytest.importorskip("rclpy")
 
 pytest.importorskip("colcon_core")
 if shutil.which("bash") is None:
     pytest.skip("needs bash to source the colcon setup script", allow_module_level=True)
 
-import _train_fixtures as fx  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS  # noqa: E402
 from msg_tools import array_to_pose_stamped, parse_marker_cdr  # noqa: E402
+from tests.helpers import train_data as fx  # noqa: E402
+from tests.helpers.ros import ros_env, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable

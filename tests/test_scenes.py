@@ -54,7 +54,8 @@ def test_ci_scene_is_valid(name):
         # Supported by gluing its bottom band to a table.
         assert len(s.pinned) > 0
         assert np.all(s.object.vertices[s.pinned, 2] <= lo[2] + s.config["object"]["pin_height"] + 1e-12)
-    assert set(s.model) >= {"latent", "message_passing_steps", "mlp_layers", "world_radius", "surface_only", "contact_tests"}
+    assert set(s.model) >= {"latent", "message_passing_steps", "mlp_layers", "world_radius", "surface_only",
+                            "contact_tests"}
 
 
 @pytest.mark.parametrize("name", SCENES)
@@ -64,7 +65,8 @@ def test_to_json_contract(name):
     for key in ["name", "dt", "object_bbox_min", "object_bbox_max", "tool_shape", "tool_rest_pose",
                 "workspace_min", "workspace_max", "object_vertices", "object_faces"]:
         assert key in d
-    assert d["name"] == name and d["object_vertices"] == s.object.num_vertices and d["object_faces"] == len(s.object.faces)
+    assert (d["name"] == name and d["object_vertices"] == s.object.num_vertices
+            and d["object_faces"] == len(s.object.faces))
     assert len(d["tool_rest_pose"]) == 7 and len(d["object_bbox_min"]) == 3
     json.loads(json.dumps(d))  # plain JSON types only
 

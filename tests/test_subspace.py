@@ -4,15 +4,16 @@ import numpy as np
 import pytest
 import torch
 
-import _train_fixtures as fx
 from colgnn_core.errors import InputError
 from colgnn_core.io import load_sequence
-from colgnn_core.learn.checkpoint import load_checkpoint, read_checkpoint
+from colgnn_core.learn.checkpoint import read_checkpoint
 from colgnn_core.learn.data import FrameDataset
+from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.subspace import SubspaceConfig, SubspaceModel, train_subspace
 from colgnn_core.learn.train import train
-from colgnn_core.rollout import rollout
+from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import load_scene
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 
@@ -31,7 +32,7 @@ def test_subspace_trains_saves_loads_and_rolls_out(tmp_path):
     assert read_checkpoint(tmp_path / "s.pt")["kind"] == "subspace"
     loaded = load_checkpoint(tmp_path / "s.pt", scene)
     assert isinstance(loaded.simulator, SubspaceModel) and loaded.meta.variant == "subspace"
-    from colgnn_core.frontier import model_size
+    from colgnn_core.evaluation.frontier import model_size
 
     assert model_size(loaded) == ""  # no graph network: the results report labels the row without a size
     gt = load_sequence(sorted(fx.dataset_dir().glob("test_*.npz"))[0])

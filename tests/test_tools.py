@@ -96,10 +96,12 @@ def test_analytic_sdf_matches_mesh_sdf(key):
     mesh = _mesh_sdf(tool, p)
     # Allowed error: how far the tessellation strays from the ideal surface (face centroids, edge midpoints).
     x = tool.vertices[tool.faces]
-    probes = np.concatenate([x.mean(1), 0.5 * (x[:, 0] + x[:, 1]), 0.5 * (x[:, 1] + x[:, 2]), 0.5 * (x[:, 2] + x[:, 0])])
+    probes = np.concatenate([x.mean(1), 0.5 * (x[:, 0] + x[:, 1]), 0.5 * (x[:, 1] + x[:, 2]), 0.5 * (x[:, 2] + x[:,
+                                                                                                                 0])])
     tess = np.abs(tool.sdf_local(probes)).max()
     assert np.abs(analytic - mesh).max() <= 2 * tess + 1e-9
-    assert np.all(np.sign(analytic[np.abs(analytic) > 2 * tess + 1e-9]) == np.sign(mesh[np.abs(analytic) > 2 * tess + 1e-9]))
+    clear = np.abs(analytic) > 2 * tess + 1e-9
+    assert np.all(np.sign(analytic[clear]) == np.sign(mesh[clear]))
     if key == "blade":  # flat faces: the mesh *is* the ideal shape
         assert np.abs(analytic - mesh).max() < 1e-9
 
@@ -109,7 +111,8 @@ def test_sdf_known_values():
     assert np.allclose(sphere.sdf_local(np.array([[0.1, 0, 0], [0, 0, 0]])), [0.06, -0.04], atol=1e-10)
     cyl = _tool("cylinder")
     # Beside the side wall, above the cap, and diagonally off the rim.
-    assert np.allclose(cyl.sdf_local(np.array([[0.03, 0, 0], [0, 0, 0.06], [0.023, 0, 0.054]])), [0.01, 0.01, 0.005], atol=1e-10)
+    assert np.allclose(cyl.sdf_local(np.array([[0.03, 0, 0], [0, 0, 0.06], [0.023, 0, 0.054]])), [0.01, 0.01, 0.005],
+                       atol=1e-10)
     cone = _tool("cone")
     # Straight below the tip, and beside the base rim.
     assert np.allclose(cone.sdf_local(np.array([[0, 0, -0.01], [0.028, 0, 0.07]])), [0.01, 0.01], atol=1e-10)
@@ -118,7 +121,8 @@ def test_sdf_known_values():
     assert np.isclose(cone.sdf_local(np.array([[0, 0, 0.035]]))[0], -0.035 * np.sin(half), atol=1e-10)
     blade = _tool("blade")
     # Under the edge; beside the flat; at the spine.
-    assert np.allclose(blade.sdf_local(np.array([[0, 0, -0.005], [0, 0.0035, 0.03], [0, 0, 0.06]])), [0.005, 0.002, 0.01], atol=1e-10)
+    assert np.allclose(blade.sdf_local(np.array([[0, 0, -0.005], [0, 0.0035, 0.03], [0, 0, 0.06]])), [0.005, 0.002,
+                                                                                                      0.01], atol=1e-10)
 
 
 def _random_pose(rng):
@@ -139,7 +143,8 @@ def test_world_sdf_and_gradient(key):
     assert np.allclose(d, tool.sdf_local(local), atol=1e-12)
     assert np.allclose(np.linalg.norm(g, axis=1), 1.0)
     h = 1e-7
-    fd = np.stack([(tool.sdf(world + h * e, pose) - tool.sdf(world - h * e, pose)) / (2 * h) for e in np.eye(3)], axis=1)
+    fd = np.stack([(tool.sdf(world + h * e, pose) - tool.sdf(world - h * e, pose)) / (2 * h) for e in np.eye(3)],
+                  axis=1)
     # Central differences are exact to O(h^2) except within h of a kink (measure-zero set).
     close = np.linalg.norm(fd - g, axis=1) < 1e-5
     assert close.mean() > 0.98

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-import _train_fixtures as fx
 from colgnn_core.errors import InputError
-from colgnn_core.learn.checkpoint import load_checkpoint, read_checkpoint
+from colgnn_core.learn.checkpoint import read_checkpoint
 from colgnn_core.learn.data import FrameDataset, sample_at
 from colgnn_core.learn.graph import template_from_scene
+from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.train import TrainConfig, ramp, train, variant_weights
 from colgnn_core.scenes import load_scene
+from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
@@ -137,8 +138,8 @@ def test_time_budget_stops_with_a_checkpoint(tmp_path):
 
 DDP_SCRIPT = """
 import sys, torch
-sys.path.insert(0, {tests!r})
-import _train_fixtures as fx
+sys.path.insert(0, {repo!r})
+from tests.helpers import train_data as fx
 from colgnn_core.learn.train import train
 import torch.distributed as dist
 res = train(fx.scene(), {data!r}, {out!r}, variant="full", seed=0, threads=1,
@@ -152,7 +153,7 @@ def test_two_process_data_parallel(tmp_path):
     data = fx.dataset_dir()
     out = str(tmp_path / "ddp.pt")
     script = tmp_path / "ddp.py"
-    script.write_text(DDP_SCRIPT.format(tests=str(Path(__file__).parent), data=str(data), out=out))
+    script.write_text(DDP_SCRIPT.format(repo=str(REPO), data=str(data), out=out))
     torchrun = Path(sys.executable).parent / "torchrun"
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", "OMP_NUM_THREADS": "1"}
     # --standalone: a local rendezvous on a free port. A new session so a hang kills the workers too.
@@ -177,7 +178,7 @@ def test_two_process_data_parallel(tmp_path):
 def test_cli_graph_choice_sets_the_graph_nodes(tmp_path, capsys):
     """`colgnn train --graph tet`: every tet-mesh vertex is a node; `--graph surface`: the surface only."""
     from colgnn_core.cli import main
-    from colgnn_core.rollout import load_model
+    from colgnn_core.runtime.models import load_model
 
     scene = fx.scene()
     n_surface = len(np.unique(scene.object.faces))

@@ -45,13 +45,12 @@ import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
+from colgnn_core.collision.kernels import box_join, longest_edge, prim_boxes, row_distance, sphere_bounds, vertex_boxes
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 
-_BRUTE_FORCE_PAIRS = 4096  # _box_join compares all pairs directly up to this many
-
 __all__ = ["Surface", "CandidatePairs", "ToolSDFBound", "mesh_edges", "box_pairs", "sdf_near_primitives",
-           "step_candidates"]
+           "check_positions", "step_candidates", "warm_up_broad_phase"]
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
@@ -109,18 +108,6 @@ class Surface:
         _, idx = _ranges(starts, counts)
         return np.unique(ids[idx])
 
-    @property
-    def edge_cols(self) -> tuple[np.ndarray, np.ndarray]:
-        """Contiguous edge end-point columns (cached): gathers on them are faster than on [E,2] slices."""
-        return self._cols("_edge_cols", self.edges)
-
-    def _cols(self, name: str, a: np.ndarray):
-        c = self.__dict__.get(name)
-        if c is None:
-            c = tuple(np.ascontiguousarray(a[:, i]) for i in range(a.shape[1]))
-            object.__setattr__(self, name, c)
-        return c
-
     @classmethod
     def from_faces(cls, faces, n_vertices: int | None = None, name: str = "mesh") -> "Surface":
         f = np.asarray(faces)
@@ -172,73 +159,7 @@ def box_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.nda
     """All (i, j) with box a_i and box b_j overlapping (closed boxes). Boxes [K,3]; returns [K,2] int64."""
     lo_a, hi_a, lo_b, hi_b = (np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
                               for x in (lo_a, hi_a, lo_b, hi_b))
-    return _box_join(lo_a, hi_a, lo_b, hi_b)
-
-
-@njit(cache=True)
-def _box_join(lo_a, hi_a, lo_b, hi_b):
-    """Sort-and-sweep join of two box sets [Ka,3], [Kb,3] -> pairs [K,2].
-
-    Along the axis where the boxes are smallest relative to the spread of their corners,
-    two intervals overlap iff lo_b lies in [lo_a, hi_a] or lo_a lies in (lo_b, hi_b]: both
-    are contiguous runs of the sorted lower corners (the two cases are disjoint).
-    """
-    na, nb = lo_a.shape[0], lo_b.shape[0]
-    out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
-    if na == 0 or nb == 0:
-        return out[:0]
-    n = 0
-    if na * nb <= _BRUTE_FORCE_PAIRS:
-        # Small sets: comparing all pairs is cheaper than sorting.
-        for i in range(na):
-            for j in range(nb):
-                if _boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
-                    out, n = _push(out, n, i, j)
-        return out[:n].copy()
-    k, best = 0, -1.0
-    for ax in range(3):
-        size = (hi_a[:, ax] - lo_a[:, ax]).sum() / na + (hi_b[:, ax] - lo_b[:, ax]).sum() / nb
-        spread = max(hi_a[:, ax].max(), hi_b[:, ax].max()) - min(lo_a[:, ax].min(), lo_b[:, ax].min())
-        r = spread / max(size, 1e-300)
-        if r > best:
-            k, best = ax, r
-    oa = np.argsort(lo_a[:, k])
-    ob = np.argsort(lo_b[:, k])
-    sa = lo_a[oa, k]
-    sb = lo_b[ob, k]
-    for i in range(na):
-        j = np.searchsorted(sb, lo_a[i, k])
-        while j < nb and sb[j] <= hi_a[i, k]:
-            jb = ob[j]
-            if _boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, jb):
-                out, n = _push(out, n, i, jb)
-            j += 1
-    for jb in range(nb):
-        i = np.searchsorted(sa, lo_b[jb, k], side="right")
-        while i < na and sa[i] <= hi_b[jb, k]:
-            ia = oa[i]
-            if _boxes_overlap(lo_a, hi_a, ia, lo_b, hi_b, jb):
-                out, n = _push(out, n, ia, jb)
-            i += 1
-    return out[:n].copy()
-
-
-@register_jitable
-def _boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
-    # Branch-free (&, not "and"): the outcomes are unpredictable, mispredictions cost more.
-    return ((lo_a[i, 0] <= hi_b[j, 0]) & (lo_b[j, 0] <= hi_a[i, 0]) & (lo_a[i, 1] <= hi_b[j, 1])
-            & (lo_b[j, 1] <= hi_a[i, 1]) & (lo_a[i, 2] <= hi_b[j, 2]) & (lo_b[j, 2] <= hi_a[i, 2]))
-
-
-@register_jitable
-def _push(out, n, i, j):
-    if n == out.shape[0]:
-        grown = np.empty((2 * n, 2), dtype=np.int64)
-        grown[:n] = out
-        out = grown
-    out[n, 0] = i
-    out[n, 1] = j
-    return out, n + 1
+    return box_join(lo_a, hi_a, lo_b, hi_b)
 
 
 class ToolSDFBound:
@@ -287,7 +208,7 @@ class ToolSDFBound:
         """
         c0, c1 = (quat_to_matrix(np.asarray(p, dtype=np.float64)[3:]) @ self.center_local
                   + np.asarray(p, dtype=np.float64)[:3] for p in (pose0, pose1))
-        lb0, lb1 = _sphere_bounds(X0, X1, ids, c0, c1, self.radius)
+        lb0, lb1 = sphere_bounds(X0, X1, ids, c0, c1, self.radius)
         idx = np.flatnonzero((lb0 + lb1) <= needed)
         if len(idx):
             for lb, X, pose in ((lb0, X0, pose0), (lb1, X1, pose1)):
@@ -297,45 +218,13 @@ class ToolSDFBound:
 
 
 @njit(cache=True)
-def _sphere_bounds(X0, X1, ids, c0, c1, radius):
-    """Distances [K] of points X0[ids], X1[ids] to the bounding spheres at t0 / t1 (centres c0, c1; m)."""
-    K = ids.shape[0]
-    lb0 = np.empty(K)
-    lb1 = np.empty(K)
-    for k in range(K):
-        lb0[k] = _dist(X0, ids[k], c0) - radius
-        lb1[k] = _dist(X1, ids[k], c1) - radius
-    return lb0, lb1
-
-
-@register_jitable
-def _dist(P, k, c):
-    d0, d1, d2 = P[k, 0] - c[0], P[k, 1] - c[1], P[k, 2] - c[2]
-    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-
-
-@register_jitable
-def _row_dist(X, i, Y, j):
-    d0, d1, d2 = X[i, 0] - Y[j, 0], X[i, 1] - Y[j, 1], X[i, 2] - Y[j, 2]
-    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-
-
-@njit(cache=True)
-def _max_edge_length_kernel(X, edges):
-    m = 0.0
-    for e in range(edges.shape[0]):
-        m = max(m, _row_dist(X, edges[e, 0], X, edges[e, 1]))
-    return m
-
-
-@njit(cache=True)
 def _max_row_distance(X, Y, rows):
     """max over ``rows`` of |X[r] - Y[r]| (m); all rows when ``rows`` is empty."""
     m = 0.0
     n = rows.shape[0] if rows.shape[0] else X.shape[0]
     for i in range(n):
         r = rows[i] if rows.shape[0] else i
-        m = max(m, _row_dist(X, r, Y, r))
+        m = max(m, row_distance(X, r, Y, r))
     return m
 
 
@@ -353,7 +242,7 @@ def _max_edge_length(X: np.ndarray, surface: Surface, cache: dict | None) -> flo
         move = _max_row_distance(X, cache["ref"], surface.vertices)
         if move <= 0.5 * cache["lmax"]:
             return cache["lmax"] + 2.0 * move
-    lmax = _max_edge_length_kernel(X, surface.edges)
+    lmax = longest_edge(X, surface.edges)
     if cache is not None:
         cache["ref"] = X.copy()
         cache["lmax"] = lmax
@@ -398,7 +287,7 @@ def _near_primitives(X0, X1, S, sdf0, sdf1, budget, reach, edges, faces, ve_off,
     for i in range(len(S)):
         v = S[i]
         s0[v], s1[v] = sdf0[i], sdf1[i]
-        disp[v] = _row_dist(X1, v, X0, v)
+        disp[v] = row_distance(X1, v, X0, v)
         if sdf0[i] + sdf1[i] - disp[v] <= budget:
             near_v[nv] = v
             nv += 1
@@ -417,7 +306,7 @@ def _near_primitives(X0, X1, S, sdf0, sdf1, budget, reach, edges, faces, ve_off,
                 continue
             seen_e[e] = True
             a, b = edges[e, 0], edges[e, 1]
-            L0, L1 = _row_dist(X0, a, X0, b), _row_dist(X1, a, X1, b)
+            L0, L1 = row_distance(X0, a, X0, b), row_distance(X1, a, X1, b)
             lb0 = max(max(s0[a], s0[b]) - L0, min(s0[a], s0[b]) - 0.5 * L0)
             lb1 = max(max(s1[a], s1[b]) - L1, min(s1[a], s1[b]) - 0.5 * L1)
             if lb0 + lb1 - max(disp[a], disp[b]) <= budget:
@@ -429,8 +318,8 @@ def _near_primitives(X0, X1, S, sdf0, sdf1, budget, reach, edges, faces, ve_off,
                 continue
             seen_f[f] = True
             a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-            L0 = max(_row_dist(X0, a, X0, b), _row_dist(X0, b, X0, c), _row_dist(X0, c, X0, a))
-            L1 = max(_row_dist(X1, a, X1, b), _row_dist(X1, b, X1, c), _row_dist(X1, c, X1, a))
+            L0 = max(row_distance(X0, a, X0, b), row_distance(X0, b, X0, c), row_distance(X0, c, X0, a))
+            L1 = max(row_distance(X1, a, X1, b), row_distance(X1, b, X1, c), row_distance(X1, c, X1, a))
             r = 1.0 / np.sqrt(3.0)
             lb0 = max(max(s0[a], s0[b], s0[c]) - L0, min(s0[a], s0[b], s0[c]) - r * L0)
             lb1 = max(max(s1[a], s1[b], s1[c]) - L1, min(s1[a], s1[b], s1[c]) - r * L1)
@@ -440,7 +329,8 @@ def _near_primitives(X0, X1, S, sdf0, sdf1, budget, reach, edges, faces, ve_off,
     return near_v[:nv].copy(), np.sort(near_e[:ne]), np.sort(near_f[:nf])
 
 
-def _check_positions(X, n: int, name: str) -> np.ndarray:
+def check_positions(X, n: int, name: str) -> np.ndarray:
+    """``X`` as a float64 [n,3] array of finite positions (InputError naming ``name`` otherwise)."""
     X = np.asarray(X, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] != n:
         raise InputError(f"{name} must be [{n},3], got shape {X.shape}")
@@ -460,10 +350,10 @@ def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool
     ``cache`` is a dict the caller keeps across steps of the same object (edge-length bounds).
     """
     if check:
-        object_t0 = _check_positions(object_t0, object_surface.n_vertices, "object_t0")
-        object_t1 = _check_positions(object_t1, object_surface.n_vertices, "object_t1")
-        tool_t0 = _check_positions(tool_t0, tool_surface.n_vertices, "tool_t0")
-        tool_t1 = _check_positions(tool_t1, tool_surface.n_vertices, "tool_t1")
+        object_t0 = check_positions(object_t0, object_surface.n_vertices, "object_t0")
+        object_t1 = check_positions(object_t1, object_surface.n_vertices, "object_t1")
+        tool_t0 = check_positions(tool_t0, tool_surface.n_vertices, "tool_t0")
+        tool_t1 = check_positions(tool_t1, tool_surface.n_vertices, "tool_t1")
     X0, X1, T0, T1 = (np.ascontiguousarray(x, dtype=np.float64) for x in (object_t0, object_t1, tool_t0, tool_t1))
     if tool_bound is not None and tool_bound.usable and tool_pose_t0 is not None and tool_pose_t1 is not None:
         D = _max_row_distance(T1, T0, _ALL_ROWS)
@@ -498,9 +388,9 @@ def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_
     """
     r_lo = np.full(3, np.inf)
     r_hi = np.full(3, -np.inf)
-    vlo, vhi = _vertex_boxes(X0, X1, near_v)
-    elo, ehi = _prim_boxes(X0, X1, edges, near_e)
-    flo, fhi = _prim_boxes(X0, X1, faces, near_f)
+    vlo, vhi = vertex_boxes(X0, X1, near_v)
+    elo, ehi = prim_boxes(X0, X1, edges, near_e)
+    flo, fhi = prim_boxes(X0, X1, faces, near_f)
     for lo, hi in ((vlo, vhi), (elo, ehi), (flo, fhi)):
         for k in range(lo.shape[0]):
             for a in range(3):
@@ -520,12 +410,12 @@ def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_
     vsel = np.flatnonzero(rel)
     gsel = _meeting_region(tool_faces, side)
     hsel = _meeting_region(tool_edges, side)
-    tvlo, tvhi = _vertex_boxes(T0, T1, vsel)
-    tflo, tfhi = _prim_boxes(T0, T1, tool_faces, gsel)
-    telo, tehi = _prim_boxes(T0, T1, tool_edges, hsel)
-    vf = _box_join(vlo, vhi, tflo, tfhi)
-    fv = _box_join(tvlo, tvhi, flo, fhi)
-    ee = _box_join(elo, ehi, telo, tehi)
+    tvlo, tvhi = vertex_boxes(T0, T1, vsel)
+    tflo, tfhi = prim_boxes(T0, T1, tool_faces, gsel)
+    telo, tehi = prim_boxes(T0, T1, tool_edges, hsel)
+    vf = box_join(vlo, vhi, tflo, tfhi)
+    fv = box_join(tvlo, tvhi, flo, fhi)
+    ee = box_join(elo, ehi, telo, tehi)
     return _map_pairs(vf, near_v, gsel), _map_pairs(fv, vsel, near_f), _map_pairs(ee, near_e, hsel)
 
 
@@ -550,27 +440,12 @@ def _map_pairs(pairs, ids_a, ids_b):
     return out
 
 
-@register_jitable
-def _vertex_boxes(X0, X1, ids):
-    lo = np.empty((len(ids), 3))
-    hi = np.empty((len(ids), 3))
-    for k in range(len(ids)):
-        v = ids[k]
-        for a in range(3):
-            lo[k, a] = min(X0[v, a], X1[v, a])
-            hi[k, a] = max(X0[v, a], X1[v, a])
-    return lo, hi
-
-
-@register_jitable
-def _prim_boxes(X0, X1, prims, ids):
-    """Swept boxes [K,3] of primitives ``prims[ids]`` (edges or faces)."""
-    lo = np.full((len(ids), 3), np.inf)
-    hi = np.full((len(ids), 3), -np.inf)
-    for k in range(len(ids)):
-        for i in range(prims.shape[1]):
-            v = prims[ids[k], i]
-            for a in range(3):
-                lo[k, a] = min(lo[k, a], X0[v, a], X1[v, a])
-                hi[k, a] = max(hi[k, a], X0[v, a], X1[v, a])
-    return lo, hi
+def warm_up_broad_phase(X: np.ndarray, surface: Surface) -> None:
+    """Run every broad-phase kernel once on positions ``X`` [N,3] of ``surface`` (numba compiles them, or loads
+    them from its disk cache), for :func:`colgnn_core.collision.pipeline.warm_up_kernels`."""
+    S = surface.vertices
+    lb0, lb1 = sphere_bounds(X, X, S, np.zeros(3), np.zeros(3), 0.1)
+    ve, vf = surface.vertex_edges, surface.vertex_faces
+    _near_primitives(X, X, S, lb0, lb1, 1.0, 2.0, surface.edges, surface.faces, ve[0], ve[1], vf[0], vf[1])
+    _max_edge_length(X, surface, {})
+    box_pairs(X, X + 0.1, X, X)

@@ -82,7 +82,8 @@ def find_query_files(root: str | Path) -> list[Path]:
         return [root]
     if not root.is_dir():
         raise InputError(f"no such folder: {root}")
-    files = sorted(p for p in root.rglob("*") if p.is_file() and (p.name.endswith(".csv") or p.name.endswith(".csv.gz")))
+    files = sorted(p for p in root.rglob("*")
+                   if p.is_file() and (p.name.endswith(".csv") or p.name.endswith(".csv.gz")))
     if not files:
         raise InputError(f"{root}: no .csv query files found (searched all sub-folders)")
     return files

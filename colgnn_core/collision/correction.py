@@ -69,9 +69,9 @@ import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
-from colgnn_core.collision.broad_phase import (ToolSDFBound, _box_join, _max_edge_length_kernel, _prim_boxes, _row_dist,
-                                               _sphere_bounds, _vertex_boxes)
-from colgnn_core.collision.filter import _dot, _sub
+from colgnn_core.collision.broad_phase import Surface, ToolSDFBound
+from colgnn_core.collision.kernels import (box_join, longest_edge, prim_boxes, row_distance, sphere_bounds, vec_dot,
+                                           vec_sub, vertex_boxes)
 from colgnn_core.collision.pipeline import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
@@ -165,7 +165,8 @@ class CollisionCorrector:
         self.surface_ids = self.surface.vertices
         bound = ToolSDFBound(tool)
         if not bound.usable:
-            raise InputError(f"the {tool.shape} tool mesh is not convex: the correction's SDF bounds need a convex tool")
+            raise InputError(f"the {tool.shape} tool mesh is not convex: the correction's SDF bounds need a convex "
+                             "tool")
         self.mesh_margin = bound.margin              # tool mesh sticks out of the analytic shape by at most this
         self.margin = max(float(margin_fraction) * float(dhat), MIN_MARGIN)
         self.max_iterations = int(max_iterations)
@@ -273,7 +274,7 @@ class CollisionCorrector:
         a lower bound >= ``below``: the distance to the ball (about the tool-frame origin) holding the tool."""
         S = self.surface_ids
         origin = np.asarray(pose, dtype=np.float64)[:3]
-        lb, _ = _sphere_bounds(x, x, S, origin, origin, self.tool_radius)
+        lb, _ = sphere_bounds(x, x, S, origin, origin, self.tool_radius)
         idx = np.flatnonzero(lb < below)
         if len(idx):
             lb[idx] = self.tool.sdf(x[S[idx]], pose)
@@ -396,7 +397,7 @@ class CollisionCorrector:
                 clean = n_hits == 0 and not np.any(d < self.mesh_margin)
                 t_resolve += time.perf_counter() - t
                 break
-            lmax = _max_edge_length_kernel(x1, self.surface.edges)  # once per pass: SDF reach and the kernel
+            lmax = longest_edge(x1, self.surface.edges)  # once per pass: SDF reach and the kernel
             sdf = self._surface_sdf(x1, pose1, self._proximity_level + lmax)
             self._extra_v, self._extra_d, n_close = self._proximity(x1, T1, pose1, sdf, lmax)
             vid, disp = self._pushes(hits, x0, x1, T0, T1, it)
@@ -465,9 +466,9 @@ def _clip01(x):
 @register_jitable
 def _seg_params(u, v, k, l):
     """(alpha on u-v, beta on k-l) in [0,1] of (approximately) closest points of two segments."""
-    d1, d2, r = _sub(v, u), _sub(l, k), _sub(u, k)
-    a, e, f = _dot(d1, d1), _dot(d2, d2), _dot(d2, r)
-    b, c = _dot(d1, d2), _dot(d1, r)
+    d1, d2, r = vec_sub(v, u), vec_sub(l, k), vec_sub(u, k)
+    a, e, f = vec_dot(d1, d1), vec_dot(d2, d2), vec_dot(d2, r)
+    b, c = vec_dot(d1, d2), vec_dot(d1, r)
     den = a * e - b * b
     s = (b * f - c * e) / den if den > 1e-300 else 0.5
     s = 0.5 if math.isnan(s) else _clip01(s)
@@ -480,18 +481,18 @@ def _seg_params(u, v, k, l):
 
 @register_jitable
 def _pt_seg_dist(p, a, b):
-    ab = _sub(b, a)
-    t = _clip01(_dot(_sub(p, a), ab) / max(_dot(ab, ab), 1e-300))
-    d = _sub(p, _lerp(a, b, t))
-    return math.sqrt(_dot(d, d))
+    ab = vec_sub(b, a)
+    t = _clip01(vec_dot(vec_sub(p, a), ab) / max(vec_dot(ab, ab), 1e-300))
+    d = vec_sub(p, _lerp(a, b, t))
+    return math.sqrt(vec_dot(d, d))
 
 
 @register_jitable
 def _seg_dist(u, v, k, l):
     """(distance, alpha) of two segments: closest points, with the end-point distances as a safeguard."""
     alpha, beta = _seg_params(u, v, k, l)
-    d = _sub(_lerp(u, v, alpha), _lerp(k, l, beta))
-    dist = min(math.sqrt(_dot(d, d)), _pt_seg_dist(u, k, l), _pt_seg_dist(v, k, l), _pt_seg_dist(k, u, v),
+    d = vec_sub(_lerp(u, v, alpha), _lerp(k, l, beta))
+    dist = min(math.sqrt(vec_dot(d, d)), _pt_seg_dist(u, k, l), _pt_seg_dist(v, k, l), _pt_seg_dist(k, u, v),
                _pt_seg_dist(l, u, v))
     return dist, alpha
 
@@ -500,29 +501,29 @@ def _seg_dist(u, v, k, l):
 def _pt_tri(p, a, b, c):
     """(distance, w0, w1, w2): exact point-triangle distance and the barycentric weights of the closest
     point (candidates: the clamped projection and the nearest point of each edge; the nearest wins)."""
-    e0, e1 = _sub(b, a), _sub(c, a)
+    e0, e1 = vec_sub(b, a), vec_sub(c, a)
     n = (e0[1] * e1[2] - e0[2] * e1[1], e0[2] * e1[0] - e0[0] * e1[2], e0[0] * e1[1] - e0[1] * e1[0])
-    nn = math.sqrt(_dot(n, n))
+    nn = math.sqrt(vec_dot(n, n))
     dist = min(_pt_seg_dist(p, a, b), _pt_seg_dist(p, b, c), _pt_seg_dist(p, c, a))
     if nn > 0:
         inside = True
         for x, y in ((a, b), (b, c), (c, a)):
-            xy, xp = _sub(y, x), _sub(p, x)
+            xy, xp = vec_sub(y, x), vec_sub(p, x)
             cr = (xy[1] * xp[2] - xy[2] * xp[1], xy[2] * xp[0] - xy[0] * xp[2], xy[0] * xp[1] - xy[1] * xp[0])
-            inside = inside and _dot(cr, n) >= 0
+            inside = inside and vec_dot(cr, n) >= 0
         if inside:
-            dist = min(dist, abs(_dot(_sub(p, a), n)) / nn)
+            dist = min(dist, abs(vec_dot(vec_sub(p, a), n)) / nn)
     # weights of the closest point
     w = _bary_clamped(p, a, b, c)
     q = (w[0] * a[0] + w[1] * b[0] + w[2] * c[0], w[0] * a[1] + w[1] * b[1] + w[2] * c[1],
          w[0] * a[2] + w[1] * b[2] + w[2] * c[2])
-    best = _dot(_sub(p, q), _sub(p, q))
+    best = vec_dot(vec_sub(p, q), vec_sub(p, q))
     for i in range(3):
         x, y = (a, b, c)[i], (a, b, c)[(i + 1) % 3]
-        xy = _sub(y, x)
-        t = _clip01(_dot(_sub(p, x), xy) / max(_dot(xy, xy), 1e-300))
-        d = _sub(p, _lerp(x, y, t))
-        dd = _dot(d, d)
+        xy = vec_sub(y, x)
+        t = _clip01(vec_dot(vec_sub(p, x), xy) / max(vec_dot(xy, xy), 1e-300))
+        d = vec_sub(p, _lerp(x, y, t))
+        dd = vec_dot(d, d)
         if dd < best:
             best = dd
             ww = [0.0, 0.0, 0.0]
@@ -535,9 +536,9 @@ def _pt_tri(p, a, b, c):
 @register_jitable
 def _bary_clamped(p, a, b, c):
     """Barycentric weights of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
-    e0, e1, e2 = _sub(b, a), _sub(c, a), _sub(p, a)
-    d00, d01, d11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)
-    d20, d21 = _dot(e2, e0), _dot(e2, e1)
+    e0, e1, e2 = vec_sub(b, a), vec_sub(c, a), vec_sub(p, a)
+    d00, d01, d11 = vec_dot(e0, e0), vec_dot(e0, e1), vec_dot(e1, e1)
+    d20, d21 = vec_dot(e2, e0), vec_dot(e2, e1)
     den = d00 * d11 - d01 * d01
     v = (d11 * d20 - d01 * d21) / den if den != 0 else np.nan
     w = (d00 * d21 - d01 * d20) / den if den != 0 else np.nan
@@ -603,11 +604,6 @@ def _point_triangle_distance(p, a, b, c) -> np.ndarray:
     return _point_triangle_kernel(*_rows(p, a, b, c))[0]
 
 
-def _closest_barycentric(p, a, b, c) -> np.ndarray:
-    """Barycentric weights [K,3] of the point of triangle (a,b,c) closest to p."""
-    return _point_triangle_kernel(*_rows(p, a, b, c))[1]
-
-
 def _barycentric_clamped(p, a, b, c) -> np.ndarray:
     """Barycentric weights [K,3] of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
     return _barycentric_clamped_kernel(*_rows(p, a, b, c))
@@ -619,8 +615,8 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
 
     Candidates: primitives around surface vertices with SDF < ``level`` + ``lmax`` (the longest surface edge)
     whose bound (min vertex SDF - their longest edge) is below ``level`` (= trig + the tool mesh's
-    tessellation bound); then a box join (boxes grown by ``trig``) and exact distances. Returns (ee [K,2] (object edge, tool edge), ee_dist,
-    ee_alpha, fv [J,2] (tool vertex, object face), fv_dist, fv_w [J,3]).
+    tessellation bound); then a box join (boxes grown by ``trig``) and exact distances. Returns (ee [K,2] (object
+    edge, tool edge), ee_dist, ee_alpha, fv [J,2] (tool vertex, object face), fv_dist, fv_w [J,3]).
     """
     n = x1.shape[0]
     s = np.full(n, np.inf)
@@ -641,7 +637,7 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
             if not seen_e[e]:
                 seen_e[e] = True
                 a, b = edges[e, 0], edges[e, 1]
-                if min(s[a], s[b]) - _row_dist(x1, a, x1, b) < level:
+                if min(s[a], s[b]) - row_distance(x1, a, x1, b) < level:
                     cand_e[ne] = e
                     ne += 1
         for q in range(vf_off[v], vf_off[v + 1]):
@@ -649,22 +645,22 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
             if not seen_f[f]:
                 seen_f[f] = True
                 a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                L = max(_row_dist(x1, a, x1, b), _row_dist(x1, b, x1, c), _row_dist(x1, c, x1, a))
+                L = max(row_distance(x1, a, x1, b), row_distance(x1, b, x1, c), row_distance(x1, c, x1, a))
                 if min(s[a], s[b], s[c]) - L < level:
                     cand_f[nf] = f
                     nf += 1
     cand_e, cand_f = cand_e[:ne], cand_f[:nf]
-    elo, ehi = _prim_boxes(x1, x1, edges, cand_e)
-    flo, fhi = _prim_boxes(x1, x1, faces, cand_f)
+    elo, ehi = prim_boxes(x1, x1, edges, cand_e)
+    flo, fhi = prim_boxes(x1, x1, faces, cand_f)
     elo -= trig
     ehi += trig
     flo -= trig
     fhi += trig
     all_tool = np.arange(T1.shape[0])
-    tvlo, tvhi = _vertex_boxes(T1, T1, all_tool)
+    tvlo, tvhi = vertex_boxes(T1, T1, all_tool)
     hsel = np.arange(tool_edges.shape[0])
-    hlo, hhi = _prim_boxes(T1, T1, tool_edges, hsel)
-    pe = _box_join(elo, ehi, hlo, hhi)
+    hlo, hhi = prim_boxes(T1, T1, tool_edges, hsel)
+    pe = box_join(elo, ehi, hlo, hhi)
     ee = np.empty((pe.shape[0], 2), dtype=np.int64)
     ee_dist, ee_alpha = np.empty(pe.shape[0]), np.empty(pe.shape[0])
     k = 0
@@ -675,7 +671,7 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
         if d < trig:
             ee[k, 0], ee[k, 1], ee_dist[k], ee_alpha[k] = e, h, d, alpha
             k += 1
-    pf = _box_join(tvlo, tvhi, flo, fhi)
+    pf = box_join(tvlo, tvhi, flo, fhi)
     fv = np.empty((pf.shape[0], 2), dtype=np.int64)
     fv_dist, fv_w = np.empty(pf.shape[0]), np.empty((pf.shape[0], 3))
     j = 0
@@ -698,8 +694,6 @@ def _warm_up_kernels() -> None:
     global _KERNELS_READY
     if _KERNELS_READY:
         return
-    from colgnn_core.collision.broad_phase import Surface
-
     x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     surf = Surface.from_faces(np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]]), 4)
     tool = x + [0.2, 0.2, 0.2]

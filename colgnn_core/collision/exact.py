@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from colgnn_core.collision.broad_phase import box_pairs
 from colgnn_core.errors import InputError
 
 __all__ = [
@@ -242,8 +243,6 @@ def points_inside_mesh(V, F, points) -> np.ndarray:
     found with the box join; points whose ray passes within 1e-10 (relative) of an edge or
     vertex, or that lie on the surface, fall back to the generalised winding number (> 0.5).
     """
-    from colgnn_core.collision.broad_phase import box_pairs
-
     V, F = _check_mesh(V, F, "mesh")
     P = _check_points(points)
     inside = np.zeros(len(P), dtype=bool)

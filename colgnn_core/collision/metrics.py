@@ -1,4 +1,4 @@
-"""Collision metrics (ARCHITECTURE.md, "Metrics"): crossings per step, penetrations per frame.
+"""Collision metrics (docs/ARCHITECTURE.md, "Metrics"): crossings per step, penetrations per frame.
 
 * Crossings over [t, t+1] (the paper's Table 2). Object and tool vertices move
   linearly between frames. A vertex-face pair (object vertex vs tool face, or tool

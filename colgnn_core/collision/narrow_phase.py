@@ -33,9 +33,10 @@ import torch
 from numba import njit
 from numba.extending import register_jitable
 
-from colgnn_core.collision.filter import (_U, ERROR_FACTOR, UNDERFLOW_GUARD, _coefficients, _cross, _dot, _keep,
-                                          _quad_points, _sub, stack_quads)
 from colgnn_core.collision.exact import pair_arrays
+from colgnn_core.collision.filter import stack_quads
+from colgnn_core.collision.kernels import (ERROR_FACTOR, UNDERFLOW_GUARD, UNIT_ROUNDOFF, bernstein_terms, keep_mask,
+                                           quad_points, vec_cross, vec_dot, vec_sub)
 from colgnn_core.errors import InputError
 
 __all__ = [
@@ -190,10 +191,10 @@ def _inside_at(P, A, B, C, is_ee):
     """(inside, degenerate) at a coplanar instant. Vertex-face: barycentric coordinates of P in
     (A, B, C). Edge-edge (u, v | k, l) = (B, C | A, P): line parameters of the closest points."""
     if is_ee:
-        x, y, w = _sub(C, B), _sub(P, A), _sub(B, A)
+        x, y, w = vec_sub(C, B), vec_sub(P, A), vec_sub(B, A)
     else:
-        x, y, w = _sub(B, A), _sub(C, A), _sub(P, A)
-    xx, xy, yy, wx, wy = _dot(x, x), _dot(x, y), _dot(y, y), _dot(w, x), _dot(w, y)
+        x, y, w = vec_sub(B, A), vec_sub(C, A), vec_sub(P, A)
+    xx, xy, yy, wx, wy = vec_dot(x, x), vec_dot(x, y), vec_dot(y, y), vec_dot(w, x), vec_dot(w, y)
     den = xx * yy - xy * xy
     if not den > 1e-24 * (xx * yy) + 1e-300:
         return False, True
@@ -216,12 +217,12 @@ def _depth_at_t1(p1, a1, b1, c1, is_ee, b0, b3):
     pair "starts" opposite to where it ends.
     """
     if is_ee:
-        x, y = _sub(c1, b1), _sub(p1, a1)
+        x, y = vec_sub(c1, b1), vec_sub(p1, a1)
     else:
-        x, y = _sub(b1, a1), _sub(c1, a1)
-    n = _cross(x[0], x[1], x[2], y[0], y[1], y[2])
-    f1 = -_dot(_sub(a1, b1), n) if is_ee else _dot(_sub(p1, a1), n)
-    nn = np.sqrt(_dot(n, n))
+        x, y = vec_sub(b1, a1), vec_sub(c1, a1)
+    n = vec_cross(x[0], x[1], x[2], y[0], y[1], y[2])
+    f1 = -vec_dot(vec_sub(a1, b1), n) if is_ee else vec_dot(vec_sub(p1, a1), n)
+    nn = np.sqrt(vec_dot(n, n))
     side = _sign(b0)
     if side == 0:
         side = -_sign(b3)
@@ -235,7 +236,7 @@ def _narrow_one(pts, is_ee, coef, mag):
     """(hit, toi, depth, degenerate) of one filtered pair from its 8 points and filter coefficients."""
     flat = True
     for i in range(4):
-        flat = flat and abs(coef[i]) <= mag[i] * (ERROR_FACTOR * _U) + UNDERFLOW_GUARD
+        flat = flat and abs(coef[i]) <= mag[i] * (ERROR_FACTOR * UNIT_ROUNDOFF) + UNDERFLOW_GUARD
     if flat:
         return False, np.inf, 0.0, True
     b0, b3 = coef[0], coef[3]
@@ -270,9 +271,9 @@ def filter_narrow_quads(X0, X1, quads, is_ee, narrow):
     toi = np.full(K, np.inf)
     depth = np.zeros(K)
     for k in range(K):
-        pts = _quad_points(X0, X1, quads, k)
-        coef, mag = _coefficients(*pts)
-        keep[k] = _keep(coef, mag, _U)
+        pts = quad_points(X0, X1, quads, k)
+        coef, mag = bernstein_terms(*pts)
+        keep[k] = keep_mask(coef, mag, UNIT_ROUNDOFF)
         if keep[k] and narrow:
             hit[k], toi[k], depth[k], degenerate[k] = _narrow_one(pts, is_ee[k], coef, mag)
     return keep, hit, toi, depth, degenerate
@@ -285,8 +286,8 @@ def depth_quads(X0, X1, quads, is_ee):
     K = quads.shape[0]
     depth = np.zeros(K)
     for k in range(K):
-        pts = _quad_points(X0, X1, quads, k)
-        coef, _ = _coefficients(*pts)
+        pts = quad_points(X0, X1, quads, k)
+        coef, _ = bernstein_terms(*pts)
         depth[k] = _depth_at_t1(pts[4], pts[5], pts[6], pts[7], is_ee[k], coef[0], coef[3])
     return depth
 

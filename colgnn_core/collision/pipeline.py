@@ -15,11 +15,11 @@ import numpy as np
 import torch
 from numba import njit
 
-from colgnn_core.collision.broad_phase import CandidatePairs, Surface, ToolSDFBound, step_candidates
-from colgnn_core.collision.broad_phase import _check_positions as _positions
+from colgnn_core.collision.broad_phase import (CandidatePairs, Surface, ToolSDFBound, check_positions, step_candidates,
+                                               warm_up_broad_phase)
 from colgnn_core.collision.filter import keep_quads
-from colgnn_core.collision.narrow_phase import (NarrowResult, edge_edge_depth_torch, filter_narrow_quads,
-                                                 vertex_face_depth_torch)
+from colgnn_core.collision.narrow_phase import (NarrowResult, cubic_roots_01, depth_quads, edge_edge_depth_torch,
+                                                filter_narrow_quads, vertex_face_depth_torch)
 from colgnn_core.errors import InputError
 
 __all__ = ["CollisionDetector", "StepCollisions", "pair_points", "pair_quads", "stacked_positions", "filter_pairs",
@@ -119,9 +119,6 @@ def warm_up_kernels() -> None:
     global _KERNELS_READY
     if _KERNELS_READY:
         return
-    from colgnn_core.collision import broad_phase as bp
-    from colgnn_core.collision.narrow_phase import cubic_roots_01, depth_quads
-
     # A vertex moving through a triangle: every kernel runs on real (tiny) data.
     faces = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]], dtype=np.int64)
     obj0 = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -136,12 +133,7 @@ def warm_up_kernels() -> None:
     keep_quads(X0, X1, quads)
     depth_quads(X0, X1, quads, is_ee)
     cubic_roots_01(np.array([[-1.0, 0.0, 0.0, 1.0]]))
-    S = so.vertices
-    lb0, lb1 = bp._sphere_bounds(obj0, obj0, S, np.zeros(3), np.zeros(3), 0.1)
-    ve, vf = so.vertex_edges, so.vertex_faces
-    bp._near_primitives(obj0, obj0, S, lb0, lb1, 1.0, 2.0, so.edges, so.faces, ve[0], ve[1], vf[0], vf[1])
-    bp._max_edge_length(obj0, so, {})
-    bp.box_pairs(obj0, obj0 + 0.1, obj0, obj0)
+    warm_up_broad_phase(obj0, so)
     _KERNELS_READY = True
 
 
@@ -203,10 +195,10 @@ class CollisionDetector:
         """Run the pipeline on positions [N,3] / [M,3] at t and t+1 (m). Poses enable SDF culling."""
         t_start = time.perf_counter()
         if check:
-            object_t0 = _positions(object_t0, self.object_surface.n_vertices, "object_t0")
-            object_t1 = _positions(object_t1, self.object_surface.n_vertices, "object_t1")
-            tool_t0 = _positions(tool_t0, self.tool_surface.n_vertices, "tool_t0")
-            tool_t1 = _positions(tool_t1, self.tool_surface.n_vertices, "tool_t1")
+            object_t0 = check_positions(object_t0, self.object_surface.n_vertices, "object_t0")
+            object_t1 = check_positions(object_t1, self.object_surface.n_vertices, "object_t1")
+            tool_t0 = check_positions(tool_t0, self.tool_surface.n_vertices, "tool_t0")
+            tool_t1 = check_positions(tool_t1, self.tool_surface.n_vertices, "tool_t1")
         cand = step_candidates(object_t0, object_t1, self.object_surface, tool_t0, tool_t1, self.tool_surface,
                                tool_bound=self.tool_bound, tool_pose_t0=tool_pose_t0, tool_pose_t1=tool_pose_t1,
                                check=check, cache=self._cache)

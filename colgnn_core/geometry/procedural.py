@@ -180,7 +180,8 @@ def mat_mesh(size_x: float, size_y: float, thickness: float, nx: int, ny: int, n
     def embed(layers: np.ndarray, q: np.ndarray) -> np.ndarray:
         z = thickness * layers / nz
         xy = (q - 0.5) * np.array([size_x, size_y])
-        return np.concatenate([np.broadcast_to(xy, (len(layers),) + xy.shape), np.broadcast_to(z[:, None, None], (len(layers), len(q), 1))], axis=-1)
+        return np.concatenate([np.broadcast_to(xy, (len(layers),) + xy.shape),
+                               np.broadcast_to(z[:, None, None], (len(layers), len(q), 1))], axis=-1)
 
     return sweep_prisms(pts, tri, nz + 1, embed)
 
@@ -232,6 +233,7 @@ def banana_mesh(
     def embed(layers: np.ndarray, q: np.ndarray) -> np.ndarray:
         c = np.stack([cx, cy, cz], axis=1)[layers]  # [L,3]
         rr = r[layers][:, None, None]
-        return c[:, None, :] + rr * (q[None, :, 0:1] * side[layers][:, None, :] + q[None, :, 1:2] * np.array([0.0, 0.0, 1.0]))
+        return c[:, None, :] + rr * (q[None, :, 0:1] * side[layers][:, None, :]
+                                     + q[None, :, 1:2] * np.array([0.0, 0.0, 1.0]))
 
     return sweep_prisms(pts, tri, segments, embed)

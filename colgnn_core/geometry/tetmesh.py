@@ -88,13 +88,15 @@ def check_closed_surface(vertices: np.ndarray, faces: np.ndarray, what: str = "s
     directed = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     d_unique, d_counts = np.unique(directed, axis=0, return_counts=True)
     if np.any(d_counts > 1):
-        raise ValueError(f"{what}: {int(np.sum(d_counts > 1))} directed edges used twice (inconsistent orientation or non-manifold)")
+        raise ValueError(f"{what}: {int(np.sum(d_counts > 1))} directed edges used twice (inconsistent orientation or "
+                         "non-manifold)")
     # Watertight + consistent: every directed edge has its reverse.
     n_v = len(v)
     codes = d_unique[:, 0] * n_v + d_unique[:, 1]
     reverse = d_unique[:, 1] * n_v + d_unique[:, 0]
     if not np.all(np.isin(reverse, codes)):
-        raise ValueError(f"{what}: open or inconsistently oriented ({int(np.sum(~np.isin(reverse, codes)))} unmatched half-edges)")
+        raise ValueError(f"{what}: open or inconsistently oriented ({int(np.sum(~np.isin(reverse, codes)))} unmatched "
+                         "half-edges)")
     volume = float(np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() / 6.0)
     if volume <= 0:
         raise ValueError(f"{what}: enclosed volume {volume:.3e} <= 0 (faces point inward)")
@@ -163,7 +165,8 @@ class TetMesh:
         """(min [3], max [3]) of the rest vertices (m)."""
         return self.vertices.min(axis=0), self.vertices.max(axis=0)
 
-    def transformed(self, rotation: np.ndarray | None = None, scale: float = 1.0, translation: np.ndarray | None = None) -> "TetMesh":
+    def transformed(self, rotation: np.ndarray | None = None, scale: float = 1.0,
+                    translation: np.ndarray | None = None) -> "TetMesh":
         """A copy with x' = scale * R x + t (rotation must be proper, det = +1, to keep orientation)."""
         x = np.asarray(self.vertices, dtype=np.float64)
         if rotation is not None:
@@ -173,7 +176,8 @@ class TetMesh:
         x = x * float(scale)
         if translation is not None:
             x = x + np.asarray(translation, dtype=np.float64)
-        return TetMesh(vertices=x, tets=self.tets, faces=self.faces, surface_vertices=self.surface_vertices, edges=self.edges)
+        return TetMesh(vertices=x, tets=self.tets, faces=self.faces, surface_vertices=self.surface_vertices,
+                       edges=self.edges)
 
     def validate(self, min_volume_ratio: float = 1e-6) -> None:
         """Raise ValueError naming the problem, or return None if the mesh is valid.
@@ -197,10 +201,12 @@ class TetMesh:
             raise ValueError(f"{unused} vertices are not used by any tet (they would have no mass)")
         vol = self.volumes()
         if np.any(vol <= 0):
-            raise ValueError(f"{int(np.sum(vol <= 0))} inverted or flat tets (first at index {int(np.argmax(vol <= 0))})")
+            raise ValueError(f"{int(np.sum(vol <= 0))} inverted or flat tets (first at index "
+                             f"{int(np.argmax(vol <= 0))})")
         tiny = vol < min_volume_ratio * vol.mean()
         if np.any(tiny):
-            raise ValueError(f"{int(tiny.sum())} degenerate tets (volume < {min_volume_ratio:g} x mean), first at index {int(np.argmax(tiny))}")
+            raise ValueError(f"{int(tiny.sum())} degenerate tets (volume < {min_volume_ratio:g} x mean), first at "
+                             f"index {int(np.argmax(tiny))}")
         expected = boundary_faces(t)
         if len(expected) != len(f) or not np.array_equal(
             np.unique(np.sort(expected, axis=1), axis=0), np.unique(np.sort(f, axis=1), axis=0)
@@ -212,7 +218,8 @@ class TetMesh:
         order_e = np.lexsort(exp_sorted.T[::-1])
         f_sorted = np.sort(f, axis=1)
         order_f = np.lexsort(f_sorted.T[::-1])
-        ne = np.cross(v[expected[order_e, 1]] - v[expected[order_e, 0]], v[expected[order_e, 2]] - v[expected[order_e, 0]])
+        ne = np.cross(v[expected[order_e, 1]] - v[expected[order_e, 0]],
+                      v[expected[order_e, 2]] - v[expected[order_e, 0]])
         nf = np.cross(v[f[order_f, 1]] - v[f[order_f, 0]], v[f[order_f, 2]] - v[f[order_f, 0]])
         if np.any(np.einsum("ij,ij->i", ne, nf) <= 0):
             raise ValueError("some faces point inward (orientation differs from their tet)")

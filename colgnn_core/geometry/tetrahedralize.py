@@ -55,7 +55,8 @@ def tetrahedralize_surface(
     w = _wrapper()
     empty_v, empty_t, empty_val = np.zeros((0, 3)), np.zeros((0, 4), np.int32), np.zeros(0)
     v, t = w.tetrahedralize_mesh(
-        np.array(vertices, dtype=np.float64, order="C", copy=True),  # writable copy: the binding refuses read-only arrays
+        # writable copies: the binding refuses read-only arrays
+        np.array(vertices, dtype=np.float64, order="C", copy=True),
         np.array(faces, dtype=np.uint32, order="C", copy=True),
         True,  # optimize
         False,  # skip_simplify
@@ -83,7 +84,9 @@ def tetrahedralize_surface(
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("surface", help="closed triangle surface (.obj/.stl/.ply, read with trimesh) or a .msh tet mesh (its boundary)")
+    ap.add_argument("surface",
+                    help="closed triangle surface (.obj/.stl/.ply, read with trimesh) or a .msh tet mesh (its "
+                         "boundary)")
     ap.add_argument("out", help="output .npz (vertices, tets)")
     ap.add_argument("--edge-length-fac", type=float, default=0.1, help="target edge length / bbox diagonal")
     ap.add_argument("--epsilon", type=float, default=1e-3, help="surface envelope / bbox diagonal")
@@ -93,13 +96,14 @@ def main(argv: list[str] | None = None) -> int:
         src = load_msh(args.surface)
         vertices, faces = src.vertices, src.faces
     else:
-        import trimesh
+        import trimesh  # lazy: trimesh is slow to import and only mesh files need it
 
         surf = trimesh.load(args.surface, process=False, force="mesh")
         vertices, faces = np.asarray(surf.vertices), np.asarray(surf.faces)
     mesh = tetrahedralize_surface(vertices, faces, args.edge_length_fac, args.epsilon, coarsen=args.coarsen)
     mesh.save_npz(args.out)
-    print(f"{args.out}: {mesh.num_vertices} vertices, {len(mesh.surface_vertices)} surface vertices, {len(mesh.faces)} faces, {len(mesh.tets)} tets")
+    print(f"{args.out}: {mesh.num_vertices} vertices, {len(mesh.surface_vertices)} surface vertices, "
+          f"{len(mesh.faces)} faces, {len(mesh.tets)} tets")
     return 0
 
 

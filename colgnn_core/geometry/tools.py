@@ -56,7 +56,7 @@ def _is_torch(x: Any) -> bool:
 
 def _sqrt(x):
     if _is_torch(x):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.sqrt(x + _EPS2)
     return np.sqrt(x + _EPS2)
@@ -72,7 +72,7 @@ def _negpart(x):
 
 def _maximum(a, b):
     if _is_torch(a):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.maximum(a, b)
     return np.maximum(a, b)
@@ -80,7 +80,7 @@ def _maximum(a, b):
 
 def _minimum(a, b):
     if _is_torch(a):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.minimum(a, b)
     return np.minimum(a, b)
@@ -88,7 +88,7 @@ def _minimum(a, b):
 
 def _where(c, a, b):
     if _is_torch(a):
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         return torch.where(c, a, b)
     return np.where(c, a, b)
@@ -294,7 +294,7 @@ def tool_sdf_local(shape: str, params: dict[str, float], p):
 
 def quat_to_matrix_torch(q):
     """Unit quaternions [...,4] (xyzw) tensor to rotation matrices [...,3,3], differentiable."""
-    import torch
+    import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
     x, y, z, w = q.unbind(-1)
     rows = [
@@ -338,7 +338,7 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _mesh_sphere(radius: float, subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
+    import trimesh  # lazy: trimesh is slow to import and only the sphere tool's mesh needs it
 
     m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
@@ -380,7 +380,8 @@ def _mesh_cone(radius: float, height: float, tip_radius: float, n: int) -> tuple
     return v, _outward(v, f)
 
 
-def _mesh_blade(length: float, height: float, thickness: float, bevel: float, n_along: int) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_blade(length: float, height: float, thickness: float, bevel: float,
+                n_along: int) -> tuple[np.ndarray, np.ndarray]:
     section = blade_section(height, thickness, bevel)  # [5,2] (y,z)
     xs = np.linspace(-0.5 * length, 0.5 * length, n_along + 1)
     m = len(section)
@@ -437,7 +438,8 @@ class Tool:
 
     def sdf(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Signed distance [N] (m) of world points [N,3] to the tool at ``pose`` [7]."""
-        return self.sdf_local(inverse_transform_points(np.asarray(points, dtype=np.float64).reshape(-1, 3), np.asarray(pose, dtype=np.float64)))
+        return self.sdf_local(inverse_transform_points(np.asarray(points, dtype=np.float64).reshape(-1, 3),
+                                                       np.asarray(pose, dtype=np.float64)))
 
     def sdf_grad(self, points: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(d [N], unit outward gradient [N,3] in world) at world points [N,3].
@@ -458,7 +460,7 @@ class Tool:
         Gradients flow to ``points`` and to ``pose`` (the quaternion is used as
         given; pass a unit quaternion).
         """
-        import torch
+        import torch  # lazy: torch is heavy; the numpy path (solver, dataset workers) must not load it
 
         pose = torch.as_tensor(pose, dtype=points.dtype, device=points.device)
         r = quat_to_matrix_torch(pose[3:])
@@ -511,6 +513,7 @@ def make_tool(shape: str, params: dict, resolution: str = "full") -> Tool:
         if p["bevel"] >= p["height"]:
             raise InputError("blade bevel must be smaller than its height")
         v, f = _mesh_blade(p["length"], p["height"], p["thickness"], p["bevel"], n)
-    tool = Tool(shape=shape, params=p, vertices=np.ascontiguousarray(v, dtype=np.float64), faces=np.ascontiguousarray(f, dtype=np.int64))
+    tool = Tool(shape=shape, params=p, vertices=np.ascontiguousarray(v, dtype=np.float64),
+                faces=np.ascontiguousarray(f, dtype=np.int64))
     tool.validate()
     return tool

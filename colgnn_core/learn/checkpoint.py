@@ -13,8 +13,8 @@ half-written checkpoint under the final name) and read back with
 * ``rng``: RNG states for a bit-exact resume (see :func:`capture_rng_state`);
 * ``extra``: anything else the training loop needs (plain Python / tensors).
 
-Loading checks the file and that it belongs to the scene it is used with
-(name, mesh fingerprint, dt): otherwise :class:`InputError`.
+Loading (:func:`colgnn_core.learn.registry.load_checkpoint`, which knows the model kinds) checks the file
+and that it belongs to the scene it is used with (name, mesh fingerprint, dt): otherwise :class:`InputError`.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ import torch
 
 from colgnn_core.errors import InputError
 from colgnn_core.io import atomic_write
-from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.model import ModelConfig, Simulator
+from colgnn_core.scenes import load_scene
 
 FORMAT = "colgnn-checkpoint"
 VERSION = 1
@@ -53,6 +53,10 @@ class CheckpointMeta:
     @classmethod
     def for_scene(cls, scene, variant: str, step: int = 0) -> "CheckpointMeta":
         return cls(scene.name, scene.resolution, scene.object.fingerprint(), float(scene.dt), variant, int(step))
+
+    def load_scene(self):
+        """The Scene this checkpoint was trained on (its name, at its resolution)."""
+        return load_scene(self.scene, self.resolution)
 
 
 @dataclass
@@ -149,7 +153,8 @@ def strip_training_state(src: str | os.PathLike, dst: str | os.PathLike) -> None
         torch.save(payload, fh)
 
 
-def check_compatible(meta: CheckpointMeta, scene_name: str, fingerprint: str, dt: float, source: str = "checkpoint") -> None:
+def check_compatible(meta: CheckpointMeta, scene_name: str, fingerprint: str, dt: float,
+                     source: str = "checkpoint") -> None:
     """InputError when the checkpoint was trained for another scene, mesh or time step."""
     if meta.scene != scene_name:
         raise InputError(f"{source} is for scene {meta.scene!r}, not {scene_name!r}")
@@ -170,24 +175,3 @@ def simulator_from_payload(payload: dict, template, source: str = "checkpoint") 
         raise InputError(f"{source}: model weights do not match its config/scene: {str(exc).splitlines()[0]}") from exc
     sim.eval()
     return sim
-
-
-def load_checkpoint(path: str | os.PathLike, scene=None) -> LoadedCheckpoint:
-    """Load a checkpoint for ``scene`` (default: the scene and resolution it names), checking it belongs there."""
-    payload = read_checkpoint(path)
-    meta = CheckpointMeta(**payload["meta"])
-    if scene is None:
-        from colgnn_core.scenes import load_scene
-        scene = load_scene(meta.scene, meta.resolution)
-    check_compatible(meta, scene.name, scene.object.fingerprint(), float(scene.dt), source=str(path))
-    if payload.get("kind", "gnn") == "subspace":  # the Holden et al. baseline: same file format and checks
-        from colgnn_core.learn.subspace import subspace_from_payload
-
-        sub = subspace_from_payload(payload, scene, source=str(path))
-        return LoadedCheckpoint(sub, meta, sub.config, payload.get("optimizer"), payload.get("scheduler"),
-                                payload.get("rng"), payload.get("extra") or {})
-    config = ModelConfig.from_dict(payload["config"])
-    template = template_from_scene(scene, surface_only=config.surface_only, world_radius=config.world_radius)
-    sim = simulator_from_payload(payload, template, source=str(path))
-    return LoadedCheckpoint(sim, meta, config, payload.get("optimizer"), payload.get("scheduler"),
-                            payload.get("rng"), payload.get("extra") or {})

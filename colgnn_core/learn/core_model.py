@@ -84,7 +84,8 @@ class GraphNetBlock(nn.Module):
         super().__init__()
         self.edge_set_names = tuple(edge_set_names)
         # The first Linear of each edge MLP acts on [h_s, h_r, e] (see edge_mlp_input).
-        self.edge_mlps = nn.ModuleDict({n: make_mlp(3 * latent, latent, latent, mlp_layers) for n in self.edge_set_names})
+        self.edge_mlps = nn.ModuleDict({n: make_mlp(3 * latent, latent, latent,
+                                                    mlp_layers) for n in self.edge_set_names})
         self.node_mlp = make_mlp((1 + len(self.edge_set_names)) * latent, latent, latent, mlp_layers)
 
     def forward(self, graph: MultiGraph) -> MultiGraph:

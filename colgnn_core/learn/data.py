@@ -89,7 +89,8 @@ def load_checked_sequence(path: Path, scene) -> SeqArrays:
     n_tool = scene.tool.vertices.shape[0]
     op = seq.object_positions
     if op.shape[1] != n_mesh:
-        raise InputError(f"{path}: {op.shape[1]} object vertices, but scene {scene.name}/{scene.resolution} has {n_mesh}")
+        raise InputError(f"{path}: {op.shape[1]} object vertices, but scene {scene.name}/{scene.resolution} has "
+                         f"{n_mesh}")
     if seq.object_faces.shape != scene.object.faces.shape or not np.array_equal(seq.object_faces, scene.object.faces):
         raise InputError(f"{path}: object faces differ from scene {scene.name}/{scene.resolution}")
     if seq.tool_positions.shape[1] != n_tool or seq.tool_faces.shape != scene.tool.faces.shape:

@@ -17,6 +17,7 @@ no-compact); only the losses the training loop adds differ.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
@@ -247,7 +248,7 @@ class _CompiledOrEager:
     """A compiled function that falls back, once and for good, to its eager original on any failure."""
 
     def __init__(self, fn) -> None:
-        import torch._dynamo
+        import torch._dynamo  # lazy: the compiler stack loads only when a network is compiled
 
         # Every Simulator's bound core_outputs shares one code object, and dynamo caps the compiled variants of a
         # code object (8 by default; each network needs ~3): past it, later networks in the same process silently
@@ -264,8 +265,6 @@ class _CompiledOrEager:
             try:
                 return self.compiled(*args, **kwargs)
             except Exception as exc:  # noqa: BLE001 - any compiler failure: keep simulating, eagerly
-                import warnings
-
                 self.failure = exc
                 warnings.warn(f"torch.compile failed, running the network eagerly: {type(exc).__name__}: {exc}",
                               RuntimeWarning, stacklevel=2)

@@ -28,13 +28,15 @@ from torch import nn
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.io import ensure_writable_dir
-from colgnn_core.learn.checkpoint import (CheckpointMeta, check_compatible, read_checkpoint, save_checkpoint)
+from colgnn_core.learn.checkpoint import CheckpointMeta, save_checkpoint
 from colgnn_core.learn.core_model import make_mlp
 from colgnn_core.learn.data import FrameDataset
 from colgnn_core.learn.graph import GraphTemplate, template_from_scene
 from colgnn_core.learn.normalizer import Normalizer
+from colgnn_core.learn.training_common import GeometricDecay, TrainResult, data_stats, read_resumable
 
 TOOL_FEATURES = 12  # centroid (3), displacement (3), rotation columns x and z (6)
+RESUME_KEYS = ("steps", "batch", "lr_init", "lr_final", "variance_kept")  # the run's settings in a checkpoint
 
 
 @dataclass
@@ -119,7 +121,8 @@ def subspace_from_payload(payload: dict, scene, source: str = "checkpoint") -> S
     try:
         model.load_state_dict(payload["model"])
     except RuntimeError as exc:
-        raise InputError(f"{source}: subspace weights do not match its config/scene: {str(exc).splitlines()[0]}") from exc
+        raise InputError(f"{source}: subspace weights do not match its config/scene: "
+                         f"{str(exc).splitlines()[0]}") from exc
     return model.eval()
 
 
@@ -158,21 +161,16 @@ def train_subspace(scene, data_dir, out_ckpt, resume: bool = False, steps: int |
     ``resume`` continues from the checkpoint's step; ``stop_after`` stops (with a checkpoint) after that many
     steps of this invocation.
     """
-    from colgnn_core.learn.train import GeometricDecay, TrainResult, data_stats
-
     out_ckpt = Path(out_ckpt)
     ensure_writable_dir(out_ckpt.parent if str(out_ckpt.parent) else Path("."))
     ds = FrameDataset(scene, data_dir, "train")
+    state = None
     if resume:
-        payload = read_checkpoint(out_ckpt)
-        meta = CheckpointMeta(**payload["meta"])
-        check_compatible(meta, scene.name, scene.object.fingerprint(), float(scene.dt), source=str(out_ckpt))
-        if meta.variant != "subspace" or payload.get("optimizer") is None:
-            raise InputError(f"{out_ckpt} is not a resumable subspace checkpoint")
-        model = subspace_from_payload(payload, scene, str(out_ckpt))
-        extra = payload["extra"]
+        state = read_resumable(out_ckpt, scene, "subspace", required=RESUME_KEYS)
+        model = subspace_from_payload(state.payload, scene, str(out_ckpt))
+        extra = state.extra
         total = int(steps if steps is not None else extra["steps"])
-        start = meta.step
+        start = state.step
         batch, lr_init, lr_final = extra["batch"], extra["lr_init"], extra["lr_final"]
         xs, feats = _dataset_arrays(model, ds)
         kept = extra["variance_kept"]
@@ -200,14 +198,13 @@ def train_subspace(scene, data_dir, out_ckpt, resume: bool = False, steps: int |
     model.train()
     opt = torch.optim.Adam(model.mlp.parameters(), lr=lr_init)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, GeometricDecay(lr_final / lr_init, total))
-    if resume:
-        opt.load_state_dict(payload["optimizer"])
-        sched.load_state_dict(payload["scheduler"])
+    if state is not None:
+        state.restore_optimizer(opt, sched)
     n = z_t.shape[0]
     history, t0 = [], time.perf_counter()
     bar = None
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
 
         bar = tqdm(total=total, initial=start, desc=f"train {scene.name} subspace", unit="step")
     window = []
@@ -215,7 +212,8 @@ def train_subspace(scene, data_dir, out_ckpt, resume: bool = False, steps: int |
     for step in range(start, end):
         g = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, step]).generate_state(1)[0]))
         idx = torch.randint(0, n, (min(batch, n),), generator=g)
-        eps = torch.randn(idx.shape[0], z_std.shape[0], generator=g, dtype=torch.float64) * z_std * model.config.noise_std
+        eps = torch.randn(idx.shape[0], z_std.shape[0], generator=g,
+                          dtype=torch.float64) * z_std * model.config.noise_std
         zt = z_t[idx] + eps
         # the target asks to undo the noise (as the GNN's training noise does)
         tgt = model.out_norm(z_next[idx] - 2 * zt + z_prev[idx]).float()

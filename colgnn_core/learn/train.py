@@ -37,14 +37,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from colgnn_core.collision import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.io import ensure_writable_dir
-from colgnn_core.learn.checkpoint import (CheckpointMeta, check_compatible, read_checkpoint, save_checkpoint,
-                                          simulator_from_payload)
+from colgnn_core.learn.checkpoint import CheckpointMeta, save_checkpoint, simulator_from_payload
 from colgnn_core.learn.data import FrameDataset, read_manifest, sample_at
 from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.losses import REDUCTIONS, kl_latent, loss_ccd, loss_q, xi_random
 from colgnn_core.learn.model import ModelConfig, Simulator
+from colgnn_core.learn.subspace import train_subspace
+from colgnn_core.learn.training_common import GeometricDecay, TrainResult, data_stats, read_resumable
+from colgnn_core.scenes import load_scene
 
 VARIANTS = ("full", "baseline", "no-compact", "subspace")
 GNN_VARIANTS = ("full", "baseline", "no-compact")
@@ -130,32 +133,6 @@ def ramp(opt_step: int, opt_total: int, begin: float, end: float) -> float:
     return (opt_step - a) / max(b - a, 1e-12)
 
 
-class GeometricDecay:
-    """LR factor ``ratio ** (min(step, steps) / steps)``: exponential decay to ``ratio`` at ``steps``, then flat.
-
-    A callable object (not a function) so LambdaLR saves its state in the checkpoint.
-    """
-
-    def __init__(self, ratio: float, steps: int):
-        self.ratio = float(ratio)
-        self.steps = int(max(steps, 1))
-
-    def __call__(self, step: int) -> float:
-        return self.ratio ** (min(step, self.steps) / self.steps)
-
-
-@dataclass
-class TrainResult:
-    checkpoint: str
-    step: int                 # steps done in total (warm-up included)
-    steps: int                # the run's planned total
-    wall_s: float             # this invocation
-    stopped: str              # 'done' | 'time budget' | 'stop_after'
-    last: dict[str, float]    # last logged loss terms (rank average)
-    history: list[dict]       # logged rows (step, loss terms, lr)
-    simulator: Simulator | None = None  # the trained model (this rank's copy)
-
-
 # ---------------------------------------------------------------------------------------------------- distributed
 @dataclass
 class _Dist:
@@ -172,7 +149,7 @@ def _init_distributed() -> _Dist:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return _Dist()
-    import torch.distributed as dist
+    import torch.distributed as dist  # lazy: only under torchrun (WORLD_SIZE > 1)
 
     if not dist.is_initialized():
         dist.init_process_group("gloo")
@@ -193,7 +170,7 @@ def _snapshot(sim: Simulator) -> list[torch.Tensor]:
 def _all_reduce_step(sim: Simulator, before: list[torch.Tensor], scalars: torch.Tensor, stop: bool,
                      dist_: _Dist) -> tuple[torch.Tensor, bool]:
     """One all-reduce: average gradients and loss scalars, sum normalizer increments, OR the stop flag."""
-    import torch.distributed as dist
+    import torch.distributed as dist  # lazy: only under torchrun (WORLD_SIZE > 1)
 
     params = list(sim.parameters())
     grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
@@ -217,11 +194,12 @@ def _all_reduce_step(sim: Simulator, before: list[torch.Tensor], scalars: torch.
 
 
 # ---------------------------------------------------------------------------------------------------- setup
+LOSS_NAMES = ("loss", "L_q", "L_ccd", "xi_vf", "xi_ee", "xi_random", "L_kl", "n_vf", "n_ee")
+
+
 def _resolve_scene(scene, data_dir: Path, resolution: str | None):
     if not isinstance(scene, str):
         return scene
-    from colgnn_core.scenes import load_scene
-
     if resolution is None:
         manifest = read_manifest(data_dir) or {}
         resolution = manifest.get("resolution", "full")
@@ -234,11 +212,6 @@ def _step_generator(seed: int, step: int, rank: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(s[0]) << 32 | int(s[1]))
 
 
-def data_stats(dataset: FrameDataset, template) -> dict[str, float]:
-    """Displacement statistics (m) of the free graph nodes (see ``FrameDataset.displacement_stats``)."""
-    return dataset.displacement_stats(template.object_nodes, ~template.pinned.numpy())
-
-
 def default_noise_std(stats: dict[str, float], fraction: float) -> float:
     """``fraction`` x the RMS per-frame displacement of the free graph nodes over the frames where things move."""
     return float(fraction * stats["rms_moving"])
@@ -249,6 +222,241 @@ def _optimizer(sim: Simulator, cfg: TrainConfig):
     decay = cfg.decay_steps if cfg.decay_steps is not None else max(cfg.steps - cfg.warmup_steps, 1)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, GeometricDecay(cfg.lr_final / cfg.lr_init, decay))
     return opt, sched
+
+
+@dataclass
+class _Model:
+    """The trained model with its settings and optimizer, fresh or restored from a checkpoint."""
+
+    cfg: TrainConfig
+    template: object
+    sim: Simulator
+    opt: torch.optim.Optimizer
+    sched: object
+    start: int = 0            # steps done before this invocation
+    wall_before: float = 0.0  # training wall time of the earlier invocations (s)
+
+
+def _fresh_model(scene, dataset: FrameDataset, config: TrainConfig | None, steps: int | None, seed: int) -> _Model:
+    cfg = TrainConfig.from_dict((config or TrainConfig()).to_dict())
+    if steps is not None:
+        cfg.steps = int(steps)
+    cfg.validate()
+    template = template_from_scene(scene, surface_only=cfg.model.get("surface_only"),
+                                   world_radius=cfg.model.get("world_radius"))
+    noise = (cfg.noise_std if cfg.noise_std is not None
+             else default_noise_std(data_stats(dataset, template), cfg.noise_fraction))
+    mcfg = ModelConfig.from_scene(scene, **{**cfg.model, "noise_std": float(noise)})
+    torch.manual_seed(seed)  # identical initial weights on every rank
+    sim = Simulator(template, mcfg)
+    return _Model(cfg, template, sim, *_optimizer(sim, cfg))
+
+
+def _resumed_model(scene, out_ckpt: Path, variant: str, steps: int | None) -> _Model:
+    state = read_resumable(out_ckpt, scene, variant, required=("train_config",))
+    cfg = TrainConfig.from_dict(state.extra["train_config"])
+    mcfg = ModelConfig.from_dict(state.payload["config"])
+    template = template_from_scene(scene, surface_only=mcfg.surface_only, world_radius=mcfg.world_radius)
+    sim = simulator_from_payload(state.payload, template, source=str(out_ckpt))
+    if steps is not None:
+        cfg.steps = int(steps)
+    cfg.validate()
+    opt, sched = _optimizer(sim, cfg)
+    state.restore_optimizer(opt, sched)
+    return _Model(cfg, template, sim, opt, sched, state.step, float(state.extra.get("wall_s", 0.0)))
+
+
+@dataclass
+class _Run:
+    """One training run: the model, the data and the loss set-up of the variant."""
+
+    scene: object
+    variant: str
+    seed: int
+    out_ckpt: Path
+    dataset: FrameDataset
+    dist: _Dist
+    model: _Model
+    detector: CollisionDetector
+    weights: dict[str, float]
+    delta: float              # Δ of ξ_Random (m)
+    opt_total: int            # optimisation steps of the run (after the warm-up)
+    free: torch.Tensor        # [N] bool: graph nodes that are not pinned
+    n_free: int
+    extra: dict = field(default_factory=dict)  # saved with every checkpoint
+
+    @property
+    def cfg(self) -> TrainConfig:
+        return self.model.cfg
+
+    @property
+    def sim(self) -> Simulator:
+        return self.model.sim
+
+
+def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, steps: int | None, seed: int,
+           config: TrainConfig | None) -> _Run:
+    ensure_writable_dir(out_ckpt.parent if str(out_ckpt.parent) else Path("."))
+    dist_ = _init_distributed()
+    dataset = FrameDataset(scene, data_dir, "train")
+    model = (_resumed_model(scene, out_ckpt, variant, steps) if resume
+             else _fresh_model(scene, dataset, config, steps, seed))
+    model.sim.train()
+    cfg, template = model.cfg, model.template
+    # Crossings are also counted (without gradient) at logging steps of the baseline, for comparison.
+    detector = CollisionDetector(template.surface_faces, scene.tool.faces, template.num_object_nodes,
+                                 template.num_tool_nodes, tool=scene.tool)
+    extra = {"train_config": cfg.to_dict(), "seed": int(seed), "data_dir": str(data_dir),
+             "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
+             "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template)}
+    return _Run(scene, variant, seed, out_ckpt, dataset, dist_, model, detector, variant_weights(variant, cfg),
+                delta=float(cfg.compact_threshold if cfg.compact_threshold is not None else scene.dhat),
+                opt_total=max(cfg.steps - cfg.warmup_steps, 1), free=~template.pinned,
+                n_free=int((~template.pinned).sum()), extra=extra)
+
+
+# ---------------------------------------------------------------------------------------------------- one step
+@dataclass
+class _StepLosses:
+    total: torch.Tensor                 # the loss to back-propagate
+    terms: dict[str, torch.Tensor]      # every LOSS_NAMES entry (0 where not computed this step)
+    computed: set[str]                  # the terms computed this step
+    warm: bool                          # normalizer warm-up: no optimisation
+    ramp: float                         # this step's collision-weight ramp
+    before: list[torch.Tensor] | None   # normalizer buffers before the step (data-parallel runs)
+
+
+def _losses(run: _Run, step: int, log_now: bool) -> _StepLosses:
+    """Sample the step's transition, run the network and sum the variant's loss terms (paper eq. 2)."""
+    cfg, sim, rank = run.cfg, run.sim, run.dist.rank
+    frame, x_next, pose_t = run.dataset.sample(run.model.template,
+                                               sample_at(step, len(run.dataset), run.seed, rank, run.dist.world))
+    gen = _step_generator(run.seed, step, rank)
+    warm = step < cfg.warmup_steps
+    r = 0.0 if warm else ramp(step - cfg.warmup_steps, run.opt_total, cfg.ramp_begin, cfg.ramp_end)
+    w_ccd, w_rand, w_kl = run.weights["ccd"] * r, run.weights["random"] * r, run.weights["kl"] * r
+    before = _snapshot(sim) if run.dist.world > 1 else None
+
+    out = sim(frame, x_next, generator=gen, noise=True, accumulate=True, random_latent=w_rand > 0)
+    terms = {k: torch.zeros((), dtype=torch.float64) for k in LOSS_NAMES}
+    computed = {"loss", "L_q"}
+    lq = loss_q(out.pred_norm, out.target_norm, out.loss_mask)
+    total = run.weights["q"] * lq
+    terms["L_q"] = lq.detach().double()
+    scale = (float(cfg.depth_scale) if cfg.depth_scale is not None
+             else float(sim.output_normalizer.std().mean()))
+    if w_ccd > 0 or log_now:
+        with torch.set_grad_enabled(w_ccd > 0):
+            depths = run.detector.crossing_depths_torch(out.x_t, out.x_next_pred, frame.tool_t, frame.tool_next,
+                                                        pose_t, frame.pose_next)
+        lccd, vf, ee = loss_ccd(depths, cfg.ccd_form, scale, run.n_free)
+        if w_ccd > 0:
+            total = total + w_ccd * lccd
+        terms.update(L_ccd=lccd.detach().double(), xi_vf=vf.detach().double(), xi_ee=ee.detach().double(),
+                     n_vf=torch.tensor(float(depths["vertex_face"].numel()), dtype=torch.float64),
+                     n_ee=torch.tensor(float(depths["edge_edge"].numel()), dtype=torch.float64))
+        computed |= {"L_ccd", "xi_vf", "xi_ee", "n_vf", "n_ee"}
+    if w_rand > 0 or w_kl > 0:
+        xr = xi_random(run.scene.tool, out.x_next_random, frame.pose_next, run.delta, cfg.compact_form, scale,
+                       run.free)
+        kl = kl_latent(out.latents, out.loss_mask)
+        total = total + w_rand * xr + w_kl * kl
+        terms.update(xi_random=xr.detach().double(), L_kl=kl.detach().double())
+        computed |= {"xi_random", "L_kl"}
+    terms["loss"] = total.detach().double()
+    return _StepLosses(total, terms, computed, warm, r, before)
+
+
+def _optimise(run: _Run, losses: _StepLosses, over_budget) -> tuple[torch.Tensor, bool]:
+    """Back-propagate, average over the ranks and step the optimizer (not in the warm-up).
+
+    ``over_budget()`` says whether the time budget is spent (asked after the backward pass). Returns the loss
+    scalars (rank average, LOSS_NAMES order) and whether to stop (any rank over budget)."""
+    run.model.opt.zero_grad(set_to_none=False)
+    if not losses.warm:
+        losses.total.backward()
+    stop = over_budget()
+    scalars = torch.stack([losses.terms[k].reshape(()) for k in LOSS_NAMES])
+    if run.dist.world > 1:
+        scalars, stop = _all_reduce_step(run.sim, losses.before, scalars, stop, run.dist)
+    if not losses.warm:
+        if run.cfg.clip_grad_norm is not None:
+            torch.nn.utils.clip_grad_norm_(run.sim.parameters(), run.cfg.clip_grad_norm)
+        run.model.opt.step()
+        run.model.sched.step()
+    return scalars, stop
+
+
+# ---------------------------------------------------------------------------------------------------- logging
+class _TrainLog:
+    """Logged rows (window means of the loss terms every ``log_every`` steps), TensorBoard and the progress bar;
+    rank 0 only."""
+
+    def __init__(self, run: _Run, log_dir, progress: bool):
+        self.main = run.dist.main
+        self.start = run.model.start
+        self.writer = None
+        self.bar = None
+        self.history: list[dict] = []
+        self.last: dict[str, float] = {}
+        self.window = {k: [0.0, 0] for k in LOSS_NAMES}
+        if not self.main:
+            return
+        if log_dir is None:
+            log_dir = run.out_ckpt.parent / f"{run.out_ckpt.stem}.tb"
+        if log_dir is not False:
+            from torch.utils.tensorboard import SummaryWriter  # lazy: tensorboard is heavy and optional
+
+            self.writer = SummaryWriter(str(log_dir))
+        if progress:
+            from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
+
+            self.bar = tqdm(total=run.cfg.steps, initial=self.start, desc=f"train {run.scene.name} {run.variant}",
+                            unit="step", dynamic_ncols=True)
+
+    def record(self, step: int, scalars: torch.Tensor, losses: _StepLosses, lr: float, log_now: bool,
+               t0: float) -> None:
+        """Add a step's loss scalars to the window; at a logging step write the row (``step``: steps done)."""
+        for k, v in zip(LOSS_NAMES, scalars.tolist()):  # window means between log rows (one sample is noisy)
+            if k in losses.computed:
+                self.window[k][0] += v
+                self.window[k][1] += 1
+        if log_now and self.main:
+            row = {"step": step, "lr": lr, "ramp": losses.ramp,
+                   **{k: self.window[k][0] / max(self.window[k][1], 1) for k in LOSS_NAMES}}
+            self.history.append(row)
+            self.last = row
+            if self.writer is not None:
+                for k in LOSS_NAMES:
+                    self.writer.add_scalar(f"loss/{k}" if not k.startswith("n_") else f"collisions/{k}", row[k], step)
+                self.writer.add_scalar("train/lr", row["lr"], step)
+                self.writer.add_scalar("train/ramp", losses.ramp, step)
+                self.writer.add_scalar("train/steps_per_s",
+                                       (step - self.start) / max(time.perf_counter() - t0, 1e-9), step)
+            self.window = {k: [0.0, 0] for k in LOSS_NAMES}
+            if self.bar is not None:
+                self.bar.set_postfix(q=f"{row['L_q']:.3g}", ccd=f"{row['L_ccd']:.3g}", rand=f"{row['xi_random']:.3g}",
+                                     kl=f"{row['L_kl']:.3g}", lr=f"{row['lr']:.1e}", refresh=False)
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close_bar(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.flush()
+            self.writer.close()
+
+
+def _save(run: _Run, step: int, t0: float) -> None:
+    """Write the checkpoint after ``step`` steps (rank 0), atomically."""
+    if not run.dist.main:
+        return
+    meta = CheckpointMeta.for_scene(run.scene, run.variant, step)
+    save_checkpoint(run.out_ckpt, run.sim, meta, optimizer=run.model.opt, scheduler=run.model.sched,
+                    extra={**run.extra, "wall_s": run.model.wall_before + (time.perf_counter() - t0)})
 
 
 # ---------------------------------------------------------------------------------------------------- train
@@ -288,187 +496,37 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
     out_ckpt = Path(out_ckpt)
     scene = _resolve_scene(scene, data_dir, resolution)
     if variant == "subspace":
-        from colgnn_core.learn.subspace import train_subspace
-
         return train_subspace(scene, data_dir, out_ckpt, resume=resume, steps=steps, seed=seed, progress=progress,
                               stop_after=stop_after)
-    ensure_writable_dir(out_ckpt.parent if str(out_ckpt.parent) else Path("."))
-    dist_ = _init_distributed()
-    dataset = FrameDataset(scene, data_dir, "train")
-
-    # -- model, optimizer: fresh or from the checkpoint ------------------------------------------------------
-    if resume:
-        payload = read_checkpoint(out_ckpt)
-        meta = CheckpointMeta(**payload["meta"])
-        check_compatible(meta, scene.name, scene.object.fingerprint(), float(scene.dt), source=str(out_ckpt))
-        if meta.variant != variant:
-            raise InputError(f"{out_ckpt} was trained as variant {meta.variant!r}, not {variant!r}")
-        extra = payload.get("extra") or {}
-        if "train_config" not in extra or payload.get("optimizer") is None:
-            raise InputError(f"{out_ckpt} has no training state to resume (a shipped/stripped model?)")
-        cfg = TrainConfig.from_dict(extra["train_config"])
-        mcfg = ModelConfig.from_dict(payload["config"])
-        template = template_from_scene(scene, surface_only=mcfg.surface_only, world_radius=mcfg.world_radius)
-        sim = simulator_from_payload(payload, template, source=str(out_ckpt))
-        if steps is not None:
-            cfg.steps = int(steps)
-        cfg.validate()
-        opt, sched = _optimizer(sim, cfg)
-        opt.load_state_dict(payload["optimizer"])
-        sched.load_state_dict(payload["scheduler"])
-        start = int(meta.step)
-        wall_total = float(extra.get("wall_s", 0.0))
-    else:
-        cfg = TrainConfig.from_dict((config or TrainConfig()).to_dict())
-        if steps is not None:
-            cfg.steps = int(steps)
-        cfg.validate()
-        template = template_from_scene(scene, surface_only=cfg.model.get("surface_only"),
-                                       world_radius=cfg.model.get("world_radius"))
-        noise = (cfg.noise_std if cfg.noise_std is not None
-                 else default_noise_std(data_stats(dataset, template), cfg.noise_fraction))
-        mcfg = ModelConfig.from_scene(scene, **{**cfg.model, "noise_std": float(noise)})
-        torch.manual_seed(seed)  # identical initial weights on every rank
-        sim = Simulator(template, mcfg)
-        opt, sched = _optimizer(sim, cfg)
-        start = 0
-        wall_total = 0.0
-    sim.train()
-    weights = variant_weights(variant, cfg)
-    delta = float(cfg.compact_threshold if cfg.compact_threshold is not None else scene.dhat)
-    opt_total = max(cfg.steps - cfg.warmup_steps, 1)
-    # Crossings are also counted (without gradient) at logging steps of the baseline, for comparison.
-    from colgnn_core.collision import CollisionDetector
-
-    detector = CollisionDetector(template.surface_faces, scene.tool.faces, template.num_object_nodes,
-                                 template.num_tool_nodes, tool=scene.tool)
-    free = ~template.pinned
-    n_free = int(free.sum())
-    extra_base = {"train_config": cfg.to_dict(), "seed": int(seed), "data_dir": str(data_dir),
-                  "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
-                  "noise_std": float(mcfg.noise_std), "data_stats": data_stats(dataset, template)}
-
-    # -- logging (rank 0) ----------------------------------------------------------------------------------
-    writer = None
-    bar = None
-    if dist_.main:
-        if log_dir is None:
-            log_dir = out_ckpt.parent / f"{out_ckpt.stem}.tb"
-        if log_dir is not False:
-            from torch.utils.tensorboard import SummaryWriter
-
-            writer = SummaryWriter(str(log_dir))
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=cfg.steps, initial=start, desc=f"train {scene.name} {variant}", unit="step",
-                       dynamic_ncols=True)
-
-    def checkpoint(step: int) -> None:
-        if not dist_.main:
-            return
-        meta = CheckpointMeta.for_scene(scene, variant, step)
-        save_checkpoint(out_ckpt, sim, meta, optimizer=opt, scheduler=sched,
-                        extra={**extra_base, "wall_s": wall_total + (time.perf_counter() - t0)})
-
-    names = ("loss", "L_q", "L_ccd", "xi_vf", "xi_ee", "xi_random", "L_kl", "n_vf", "n_ee")
-    history: list[dict] = []
-    window = {k: [0.0, 0] for k in names}
-    last: dict[str, float] = {}
+    run = _setup(scene, data_dir, out_ckpt, variant, resume, steps, seed, config)
+    log = _TrainLog(run, log_dir, progress)
     t0 = time.perf_counter()
-    step = start
-    stopped = "done"
+    step, stopped = run.model.start, "done"
+
+    def over_budget() -> bool:
+        return time_budget_s is not None and time.perf_counter() - t0 >= time_budget_s
+
     try:
-        while step < cfg.steps:
-            i = sample_at(step, len(dataset), seed, dist_.rank, dist_.world)
-            frame, x_next, pose_t = dataset.sample(template, i)
-            gen = _step_generator(seed, step, dist_.rank)
-            warm = step < cfg.warmup_steps
-            opt_step = step - cfg.warmup_steps
-            r = 0.0 if warm else ramp(opt_step, opt_total, cfg.ramp_begin, cfg.ramp_end)
-            w_ccd, w_rand, w_kl = weights["ccd"] * r, weights["random"] * r, weights["kl"] * r
-            log_now = (step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps
-            before = _snapshot(sim) if dist_.world > 1 else None
-
-            out = sim(frame, x_next, generator=gen, noise=True, accumulate=True, random_latent=w_rand > 0)
-            terms = {k: torch.zeros((), dtype=torch.float64) for k in names}
-            computed = {"loss", "L_q"}
-            lq = loss_q(out.pred_norm, out.target_norm, out.loss_mask)
-            total = weights["q"] * lq
-            terms["L_q"] = lq.detach().double()
-            scale = (float(cfg.depth_scale) if cfg.depth_scale is not None
-                     else float(sim.output_normalizer.std().mean()))
-            if w_ccd > 0 or log_now:
-                with torch.set_grad_enabled(w_ccd > 0):
-                    depths = detector.crossing_depths_torch(out.x_t, out.x_next_pred, frame.tool_t, frame.tool_next,
-                                                            pose_t, frame.pose_next)
-                lccd, vf, ee = loss_ccd(depths, cfg.ccd_form, scale, n_free)
-                if w_ccd > 0:
-                    total = total + w_ccd * lccd
-                terms.update(L_ccd=lccd.detach().double(), xi_vf=vf.detach().double(), xi_ee=ee.detach().double(),
-                             n_vf=torch.tensor(float(depths["vertex_face"].numel()), dtype=torch.float64),
-                             n_ee=torch.tensor(float(depths["edge_edge"].numel()), dtype=torch.float64))
-                computed |= {"L_ccd", "xi_vf", "xi_ee", "n_vf", "n_ee"}
-            if w_rand > 0 or w_kl > 0:
-                xr = xi_random(scene.tool, out.x_next_random, frame.pose_next, delta, cfg.compact_form, scale, free)
-                kl = kl_latent(out.latents, out.loss_mask)
-                total = total + w_rand * xr + w_kl * kl
-                terms.update(xi_random=xr.detach().double(), L_kl=kl.detach().double())
-                computed |= {"xi_random", "L_kl"}
-            terms["loss"] = total.detach().double()
-
-            opt.zero_grad(set_to_none=False)
-            if not warm:
-                total.backward()
-            over_budget = time_budget_s is not None and time.perf_counter() - t0 >= time_budget_s
-            scalars = torch.stack([terms[k].reshape(()) for k in names])
-            stop = over_budget
-            if dist_.world > 1:
-                scalars, stop = _all_reduce_step(sim, before, scalars, stop, dist_)
-            if not warm:
-                if cfg.clip_grad_norm is not None:
-                    torch.nn.utils.clip_grad_norm_(sim.parameters(), cfg.clip_grad_norm)
-                opt.step()
-                sched.step()
+        while step < run.cfg.steps:
+            log_now = (step + 1) % run.cfg.log_every == 0 or step + 1 == run.cfg.steps
+            losses = _losses(run, step, log_now)
+            scalars, stop = _optimise(run, losses, over_budget)
             step += 1
-            if stop_after is not None and step - start >= stop_after:
+            if stop_after is not None and step - run.model.start >= stop_after:
                 stop, stopped = True, "stop_after"
             elif stop:
                 stopped = "time budget"
-
-            for k, v in zip(names, scalars.tolist()):  # window means between log rows (one sample per step is noisy)
-                if k in computed:
-                    window[k][0] += v
-                    window[k][1] += 1
-            if log_now and dist_.main:
-                row = {"step": step, "lr": float(opt.param_groups[0]["lr"]), "ramp": r,
-                       **{k: window[k][0] / max(window[k][1], 1) for k in names}}
-                history.append(row)
-                last = row
-                if writer is not None:
-                    for k in names:
-                        writer.add_scalar(f"loss/{k}" if not k.startswith("n_") else f"collisions/{k}", row[k], step)
-                    writer.add_scalar("train/lr", row["lr"], step)
-                    writer.add_scalar("train/ramp", r, step)
-                    writer.add_scalar("train/steps_per_s", (step - start) / max(time.perf_counter() - t0, 1e-9), step)
-                window = {k: [0.0, 0] for k in names}
-                if bar is not None:
-                    bar.set_postfix(q=f"{row['L_q']:.3g}", ccd=f"{row['L_ccd']:.3g}", rand=f"{row['xi_random']:.3g}",
-                                    kl=f"{row['L_kl']:.3g}", lr=f"{row['lr']:.1e}", refresh=False)
-            if bar is not None:
-                bar.update(1)
-            if step % cfg.checkpoint_every == 0 and step < cfg.steps and not stop:
-                checkpoint(step)
+            log.record(step, scalars, losses, float(run.model.opt.param_groups[0]["lr"]), log_now, t0)
+            if step % run.cfg.checkpoint_every == 0 and step < run.cfg.steps and not stop:
+                _save(run, step, t0)
             if stop:
                 break
     except KeyboardInterrupt:
-        checkpoint(step)
+        _save(run, step, t0)
         raise
     finally:
-        if bar is not None:
-            bar.close()
-    checkpoint(step)
-    if writer is not None:
-        writer.flush()
-        writer.close()
-    return TrainResult(str(out_ckpt), step, cfg.steps, time.perf_counter() - t0, stopped, last, history, sim)
+        log.close_bar()
+    _save(run, step, t0)
+    log.close()
+    return TrainResult(str(out_ckpt), step, run.cfg.steps, time.perf_counter() - t0, stopped, log.last, log.history,
+                       run.sim)

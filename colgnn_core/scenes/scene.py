@@ -33,11 +33,6 @@ class Material:
     poisson_ratio: float  # -
     density: float  # kg/m^3
 
-    def lame(self) -> tuple[float, float]:
-        """Lamé parameters (mu, lambda) in Pa."""
-        e, nu = self.youngs_modulus, self.poisson_ratio
-        return e / (2 * (1 + nu)), e * nu / ((1 + nu) * (1 - 2 * nu))
-
 
 @dataclass
 class Scene:
@@ -83,7 +78,8 @@ class Scene:
         if np.any(p[:3] < self.workspace_min - 1e-9) or np.any(p[:3] > self.workspace_max + 1e-9):
             raise InputError(
                 f"tool position {np.array2string(p[:3], precision=4)} is outside the {self.name} workspace "
-                f"[{', '.join(f'{v:.4g}' for v in self.workspace_min)}] .. [{', '.join(f'{v:.4g}' for v in self.workspace_max)}] m"
+                f"[{', '.join(f'{v:.4g}' for v in self.workspace_min)}] .. "
+                f"[{', '.join(f'{v:.4g}' for v in self.workspace_max)}] m"
             )
         return p
 
@@ -101,7 +97,7 @@ class Scene:
         return out
 
     def to_json(self) -> dict[str, Any]:
-        """The `colgnn scenes --json` record (ARCHITECTURE.md contract) plus a few counts."""
+        """The `colgnn scenes --json` record (docs/ARCHITECTURE.md, "Contracts") plus a few counts."""
         lo, hi = self.object_bbox()
         return {
             "name": self.name,
@@ -160,12 +156,15 @@ def build_object(spec: dict) -> TetMesh:
     elif gen == "npz":
         mesh = load_npz(MESH_DIR / spec["file"])
     elif gen == "torus":
-        mesh = torus_mesh(spec["major_radius"], spec["minor_radius"], int(spec["around"]), int(spec["segments"]), float(spec.get("growth", 1.25)))
+        mesh = torus_mesh(spec["major_radius"], spec["minor_radius"], int(spec["around"]), int(spec["segments"]),
+                          float(spec.get("growth", 1.25)))
     elif gen == "mat":
-        mesh = mat_mesh(spec["size_x"], spec["size_y"], spec["thickness"], int(spec["nx"]), int(spec["ny"]), int(spec["nz"]))
+        mesh = mat_mesh(spec["size_x"], spec["size_y"], spec["thickness"], int(spec["nx"]), int(spec["ny"]),
+                        int(spec["nz"]))
     elif gen == "banana":
         mesh = banana_mesh(
-            spec["length"], spec["radius"], spec["bend"], spec["end_radius_ratio"], int(spec["around"]), int(spec["segments"]), float(spec.get("growth", 1.25))
+            spec["length"], spec["radius"], spec["bend"], spec["end_radius_ratio"], int(spec["around"]),
+                int(spec["segments"]), float(spec.get("growth", 1.25))
         )
     else:
         raise ValueError(f"unknown object generator {gen!r}")
@@ -184,7 +183,8 @@ def place_on(mesh: TetMesh, center_xy: list[float], bottom_z: float) -> TetMesh:
     return mesh.transformed(translation=shift)
 
 
-def surface_height(mesh: TetMesh, xy: np.ndarray, near_xy: np.ndarray | None = None, radius: float = np.inf) -> np.ndarray:
+def surface_height(mesh: TetMesh, xy: np.ndarray, near_xy: np.ndarray | None = None,
+                   radius: float = np.inf) -> np.ndarray:
     """Height [Q] of the object's top surface above points xy [Q,2] (vertical ray cast); NaN off the object.
 
     ``near_xy``/``radius`` optionally restrict the faces to those with a vertex
@@ -252,7 +252,8 @@ def tool_contact_height(mesh: TetMesh, tool: Tool, xy: np.ndarray, quat: np.ndar
     return above
 
 
-def _vertex_contact_height(tool: Tool, near: np.ndarray, xy: np.ndarray, rot: np.ndarray, tz: np.ndarray, step: float) -> float:
+def _vertex_contact_height(tool: Tool, near: np.ndarray, xy: np.ndarray, rot: np.ndarray, tz: np.ndarray,
+                           step: float) -> float:
     """Part (a) of :func:`tool_contact_height`: first contact of the tool SDF with points ``near`` [K,3]."""
     base = (near - np.array([xy[0], xy[1], 0.0])) @ rot  # local coords at origin height 0
     down = rot[2]  # local coordinates of world +z: raising the tool by z shifts locals by -z*down

@@ -143,14 +143,14 @@ def _horizontal_tool_x(quat: np.ndarray) -> np.ndarray:
 
 def _stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> None:
     fam = scene.family
-    q_rest = scene.tool_rest_pose[3:]
     r = float(fam.get("target_jitter", 0.0)) * np.sqrt(rng.uniform())
     phi = rng.uniform(0, 2 * np.pi)
     xy = np.asarray(fam["target_xy"], dtype=np.float64) + r * np.array([np.cos(phi), np.sin(phi)])
     depth = _uniform(rng, fam["depth"])
     speed = _uniform(rng, fam["speed"])
     retract = speed * _uniform(rng, fam.get("retract_speed_factor", [1.0, 1.0]))
-    quat = _orientation(scene, _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi), _uniform(rng, fam.get("yaw_deg", 0.0)))
+    quat = _orientation(scene, _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi),
+                        _uniform(rng, fam.get("yaw_deg", 0.0)))
     h = _contact_heights(scene, xy[None], quat, fallback=float(scene.tool_rest_pose[2]) - _clearance(scene))[0]
     path.move_to(np.array([xy[0], xy[1], h - depth]), quat, speed)
 
@@ -272,7 +272,8 @@ def _retract(scene: Scene, path: _Path, speed: float, along_axis: bool) -> None:
     angle = 2 * np.arccos(min(1.0, abs(float(np.dot(quat, scene.tool_rest_pose[3:])))))
     if angle > 1e-6:  # turn back in place, about 3 degrees per step (peak 4.5 with easing)
         n = max(1, int(np.ceil(np.rad2deg(angle) / 3.0)))
-        path.poses.extend(interpolate_poses(path.last, np.concatenate([path.last[:3], scene.tool_rest_pose[3:]]), _ease(n)))
+        path.poses.extend(interpolate_poses(path.last, np.concatenate([path.last[:3], scene.tool_rest_pose[3:]]),
+                                            _ease(n)))
 
 
 def _finish(scene: Scene, path: _Path, frames: int, clip: bool) -> np.ndarray:
@@ -377,7 +378,8 @@ def scripted_poses(scene: Scene, kind: str, frames: int, seed: int = 0, *, clip:
             r = float(fam.get("target_jitter", 0.0)) * np.sqrt(rng.uniform())
             a = rng.uniform(0, 2 * np.pi)
             xy = c[:2] + r * np.array([np.cos(a), np.sin(a)])
-            quat = _orientation(scene, _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi), _uniform(rng, fam.get("yaw_deg", 0.0)))
+            quat = _orientation(scene, _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi),
+                                _uniform(rng, fam.get("yaw_deg", 0.0)))
             lowest = _contact_heights(scene, xy[None], quat, h_target)[0] - float(depth_hi)
             z = rng.uniform(lowest, _rest_height(scene, xy))
             path.move_to(np.array([xy[0], xy[1], z]), quat, _uniform(rng, fam["speed"]))

@@ -39,6 +39,8 @@ import numpy as np
 
 from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.io import Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
+from colgnn_core.scenes import load_scene, sample_poses, split_seeds
+from colgnn_core.sim.ipc import IPCSimulator
 
 MANIFEST = "manifest.json"
 SPLITS = ("train", "test", "both")
@@ -51,8 +53,6 @@ def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_op
     fails Newton or verification raises SimulationError naming the frame. ``sim_options`` go to
     :class:`colgnn_core.sim.ipc.IPCSimulator` (newton_tol, dhat_scale, dmin_scale, ...).
     """
-    from colgnn_core.sim.ipc import IPCSimulator
-
     poses = scene.check_poses(poses)
     if len(poses) < 1:
         raise InputError("poses must have at least one row (frame 0)")
@@ -67,7 +67,7 @@ def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_op
     obj[0], tool[0], dist[0] = sim.positions, sim.tool_positions, sim.tool_distance()
     frames = range(1, t_frames)
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
 
         frames = tqdm(frames, desc=f"{scene.name} frames", leave=False, unit="frame")
     for k in frames:
@@ -169,8 +169,6 @@ def _matches(job: _Job, seq: Sequence, fingerprint: str) -> bool:
 
 def _run_job(job: _Job) -> dict:
     """Worker: simulate one sequence and write it atomically. Returns its manifest entry or an error."""
-    from colgnn_core.scenes import load_scene, sample_poses
-
     rejected: list[dict] = []
     try:
         scene = load_scene(job.scene, job.resolution)
@@ -226,7 +224,8 @@ def _read_manifest(out_dir: Path) -> dict:
     return data
 
 
-def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], failed: dict[str, dict] | None = None) -> None:
+def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], failed: dict[str,
+                                                                                        dict] | None = None) -> None:
     """Merge ``entries`` (and ``failed`` jobs) into the manifest on disk (other shards may have added theirs) and
     replace it atomically. A file that now has an entry is dropped from ``failed``."""
     data = _read_manifest(out_dir)
@@ -315,8 +314,6 @@ def generate_dataset(
     Raises InputError for bad arguments (unknown scene, poses outside the workspace, unwritable
     folder) and SimulationError, after finishing the other sequences, if any sequence failed.
     """
-    from colgnn_core.scenes import load_scene, split_seeds
-
     scene = load_scene(scene_name, resolution)
     if split not in SPLITS:
         raise InputError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
@@ -327,30 +324,13 @@ def generate_dataset(
         raise InputError(f"shard must satisfy 0 <= i < n, got {i_shard}/{n_shard}")
     out = ensure_writable_dir(out_dir)
     opts = tuple(sorted((sim_options or {}).items()))
-
-    all_jobs: list[_Job] = []
     if poses is not None:
         poses = scene.check_poses(poses)
-        all_jobs.append(_Job(scene_name, resolution, "custom", 0, -1, len(poses), str(out / "custom_0000.npz"), opts, poses))
+        all_jobs = [_Job(scene_name, resolution, "custom", 0, -1, len(poses), str(out / "custom_0000.npz"), opts,
+                         poses)]
     else:
-        if int(frames) < 2:
-            raise InputError(f"frames must be >= 2, got {frames}")
-        if int(sequences) < 0:
-            raise InputError(f"sequences must be >= 0, got {sequences}")
-        counts = {"train": 0, "test": 0}
-        if split == "both":
-            counts["train"] = int(sequences)
-            counts["test"] = int(test_sequences) if test_sequences is not None else max(1, -(-int(sequences) // 4))
-        else:
-            counts[split] = int(sequences)
-        for sp_name, count in counts.items():
-            # Seeds count.. of the split's own seed class serve as replacements (max_retries per index).
-            spare = split_seeds(sp_name, count + count * int(max_retries))[count:]
-            for i, seed in enumerate(split_seeds(sp_name, count)):
-                fallback = tuple(spare[i * int(max_retries) : (i + 1) * int(max_retries)])
-                all_jobs.append(
-                    _Job(scene_name, resolution, sp_name, i, seed, int(frames), str(out / f"{sp_name}_{i:04d}.npz"), opts, None, fallback)
-                )
+        all_jobs = _family_jobs(scene_name, resolution, out, opts, split, sequences, test_sequences, frames,
+                                max_retries)
     my_jobs = all_jobs[i_shard::n_shard]
 
     header = {
@@ -362,28 +342,14 @@ def generate_dataset(
     }
     manifest = _read_manifest(out)
     if manifest.get("scene", scene_name) != scene_name or manifest.get("resolution", resolution) != resolution:
-        raise InputError(
-            f"{out / MANIFEST} belongs to {manifest.get('scene')}/{manifest.get('resolution')}, not {scene_name}/{resolution}"
-        )
-    done: dict[str, dict] = {}
-    todo: list[_Job] = []
-    failures: list[str] = []
-    for job in my_jobs:
-        ok, entry = _is_done(job, manifest, header["object_fingerprint"])
-        known = manifest.get("failed", {}).get(Path(job.file).name)
-        if ok:
-            done[Path(job.file).name] = entry
-        elif known is not None and not retry_failed and known.get("job") == _failure_key(job):
-            # Every seed of this job failed verification before; simulating them again gives the same result.
-            failures.append(f"{known['file']}: {known['error']} (recorded in {MANIFEST}; retry_failed / "
-                            "--retry-failed simulates it again)")
-        else:
-            todo.append(job)
+        raise InputError(f"{out / MANIFEST} belongs to {manifest.get('scene')}/{manifest.get('resolution')}, "
+                         f"not {scene_name}/{resolution}")
+    done, todo, failures = _triage(my_jobs, manifest, header["object_fingerprint"], retry_failed)
     _write_manifest(out, header, done)
 
     bar = None
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
 
         bar = tqdm(total=len(my_jobs), initial=len(done), desc=f"{scene_name}/{resolution}", unit="seq")
 
@@ -397,19 +363,77 @@ def generate_dataset(
         if bar is not None:
             bar.update(1)
             if "ms_per_step_median" in entry:
-                bar.set_postfix(ms_step=f"{entry['ms_per_step_median']:.0f}", newton=f"{entry['newton_iterations_mean']:.1f}")
+                bar.set_postfix(ms_step=f"{entry['ms_per_step_median']:.0f}",
+                                newton=f"{entry['newton_iterations_mean']:.1f}")
 
-    if int(jobs) == 1 or len(todo) <= 1:
-        for job in todo:
-            record(_run_job(job))
-    else:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(processes=min(int(jobs), len(todo))) as pool:
-            for entry in pool.imap_unordered(_run_job, todo):
-                record(entry)
+    _run_jobs(todo, int(jobs), record)
     if bar is not None:
         bar.close()
     manifest = _read_manifest(out)
     if failures:
         raise SimulationError(f"{len(failures)} sequence(s) failed: " + "; ".join(failures))
     return manifest
+
+
+def _split_counts(split: str, sequences: int, test_sequences: int | None) -> dict[str, int]:
+    """Sequences per split: ``split='both'`` gives ``sequences`` train and ``test_sequences`` test ones (default
+    ceil(sequences/4), at least 1)."""
+    if int(sequences) < 0:
+        raise InputError(f"sequences must be >= 0, got {sequences}")
+    counts = {"train": 0, "test": 0}
+    if split == "both":
+        counts["train"] = int(sequences)
+        counts["test"] = int(test_sequences) if test_sequences is not None else max(1, -(-int(sequences) // 4))
+    else:
+        counts[split] = int(sequences)
+    return counts
+
+
+def _family_jobs(scene_name: str, resolution: str, out: Path, opts: tuple, split: str, sequences: int,
+                 test_sequences: int | None, frames: int, max_retries: int) -> list[_Job]:
+    """The ordered job list of the scene's trajectory family: per split, one job per sequence index with its seed
+    and ``max_retries`` spare seeds of the same split."""
+    if int(frames) < 2:
+        raise InputError(f"frames must be >= 2, got {frames}")
+    jobs: list[_Job] = []
+    for sp_name, count in _split_counts(split, sequences, test_sequences).items():
+        # Seeds count.. of the split's own seed class serve as replacements (max_retries per index).
+        spare = split_seeds(sp_name, count + count * int(max_retries))[count:]
+        for i, seed in enumerate(split_seeds(sp_name, count)):
+            fallback = tuple(spare[i * int(max_retries) : (i + 1) * int(max_retries)])
+            jobs.append(_Job(scene_name, resolution, sp_name, i, seed, int(frames), str(out / f"{sp_name}_{i:04d}.npz"),
+                             opts, None, fallback))
+    return jobs
+
+
+def _triage(my_jobs: list[_Job], manifest: dict, fingerprint: str, retry_failed: bool
+            ) -> tuple[dict[str, dict], list[_Job], list[str]]:
+    """(finished sequences' manifest entries, jobs to simulate, known failures): a finished file is kept, a job
+    whose every seed failed before is reported again (unless ``retry_failed``), the rest is to do."""
+    done: dict[str, dict] = {}
+    todo: list[_Job] = []
+    failures: list[str] = []
+    for job in my_jobs:
+        ok, entry = _is_done(job, manifest, fingerprint)
+        known = manifest.get("failed", {}).get(Path(job.file).name)
+        if ok:
+            done[Path(job.file).name] = entry
+        elif known is not None and not retry_failed and known.get("job") == _failure_key(job):
+            # Every seed of this job failed verification before; simulating them again gives the same result.
+            failures.append(f"{known['file']}: {known['error']} (recorded in {MANIFEST}; retry_failed / "
+                            "--retry-failed simulates it again)")
+        else:
+            todo.append(job)
+    return done, todo, failures
+
+
+def _run_jobs(todo: list[_Job], jobs: int, record) -> None:
+    """Simulate ``todo`` in this process, or in ``jobs`` spawned worker processes; ``record`` each entry."""
+    if jobs == 1 or len(todo) <= 1:
+        for job in todo:
+            record(_run_job(job))
+        return
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(processes=min(jobs, len(todo))) as pool:
+        for entry in pool.imap_unordered(_run_job, todo):
+            record(entry)

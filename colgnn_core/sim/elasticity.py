@@ -38,7 +38,7 @@ _EPS = np.zeros((3, 3, 3))
 _EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
 _EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
 # ∂²J/∂F_il ∂F_jm = Σ_kn ε_ijk ε_lmn F_kn; precontract the two symbols: [9, 9, 9] (row (i,l), col (j,m), (k,n)).
-_HJ_BASIS = np.einsum("ijk,lmn->iljmkn", _EPS, _EPS).reshape(9, 9, 9)
+HJ_BASIS = np.einsum("ijk,lmn->iljmkn", _EPS, _EPS).reshape(9, 9, 9)
 
 
 def lame_parameters(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
@@ -88,7 +88,7 @@ class StableNeoHookean:
         self.j_hat = float(j_hat)
         self.inv_stiffness = self.lam + self.mu
 
-        dm = self._edge_matrix(self.rest)
+        dm = self.edge_matrix(self.rest)
         self.volumes = np.linalg.det(dm) / 6.0
         if np.any(self.volumes <= 0):
             raise ValueError(f"{int(np.sum(self.volumes <= 0))} tets have non-positive rest volume")
@@ -104,7 +104,8 @@ class StableNeoHookean:
         self._init_pattern()
 
     # ----------------------------------------------------------------- helpers
-    def _edge_matrix(self, x: np.ndarray) -> np.ndarray:
+    def edge_matrix(self, x: np.ndarray) -> np.ndarray:
+        """Ds [K,3,3]: the edge vectors x1 - x0, x2 - x0, x3 - x0 of every tet as columns, for positions x [N,3]."""
         xt = x[self.tets]
         return np.stack([xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0], xt[:, 3] - xt[:, 0]], axis=2)
 
@@ -128,10 +129,10 @@ class StableNeoHookean:
 
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """J = det F [K] (volume ratio) for positions x [N,3]."""
-        return np.linalg.det(self._edge_matrix(np.asarray(x, dtype=np.float64))) / (6.0 * self.volumes)
+        return np.linalg.det(self.edge_matrix(np.asarray(x, dtype=np.float64))) / (6.0 * self.volumes)
 
     @staticmethod
-    def _cofactor(f: np.ndarray) -> np.ndarray:
+    def cofactor(f: np.ndarray) -> np.ndarray:
         """∂J/∂F [K,3,3] (cofactor matrix): columns f1×f2, f2×f0, f0×f1."""
         c0, c1, c2 = f[:, :, 0], f[:, :, 1], f[:, :, 2]
         return np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=2)
@@ -177,7 +178,7 @@ class StableNeoHookean:
     def _stress(self, f: np.ndarray):
         ic = np.einsum("kij,kij->k", f, f)
         j = np.linalg.det(f)
-        cof = self._cofactor(f)
+        cof = self.cofactor(f)
         a = self.mu * (1.0 - 1.0 / (1.0 + ic))
         _, b1, b2 = self._inversion_barrier(j, 2)
         dpsi_dj = self.lam * (j - self.alpha) + b1  # ∂Ψ/∂J
@@ -202,7 +203,7 @@ class StableNeoHookean:
         fv = f.reshape(k, 9)
         gv = cof.reshape(k, 9)
         s = 1.0 / (1.0 + ic)
-        hf = np.einsum("kn,ijn->kij", f.reshape(k, 9), _HJ_BASIS) * dpsi_dj[:, None, None]
+        hf = np.einsum("kn,ijn->kij", f.reshape(k, 9), HJ_BASIS) * dpsi_dj[:, None, None]
         hf += (2.0 * self.mu * s * s)[:, None, None] * fv[:, :, None] * fv[:, None, :]
         hf += d2psi_dj2[:, None, None] * gv[:, :, None] * gv[:, None, :]
         hf[:, np.arange(9), np.arange(9)] += (self.mu * (1.0 - s))[:, None]
@@ -231,7 +232,9 @@ class StableNeoHookean:
         sig[flip_v, 2] *= -1.0
         s0, s1, s2 = sig[:, 0], sig[:, 1], sig[:, 2]
         gam = np.stack([s1 * s2, s0 * s2, s0 * s1], axis=1)
-        amat = b[:, None, None] * sig[:, :, None] * sig[:, None, :] + lam2[:, None, None] * gam[:, :, None] * gam[:, None, :]
+        amat = b[:, None, None] * sig[:, :, None] * sig[:, None, :] + lam2[:, None, None] * gam[:, :, None] * gam[:,
+                                                                                                                  None,
+                                                                                                                  :]
         amat[:, 0, 1] += c * s2
         amat[:, 1, 0] += c * s2
         amat[:, 0, 2] += c * s1
@@ -241,7 +244,8 @@ class StableNeoHookean:
         amat[:, np.arange(3), np.arange(3)] += a[:, None]
         w_scale, e_scale = np.linalg.eigh(amat)
         # Outer products u_a v_bᵀ of singular-vector columns, row-major vec: [K, 3(a), 3(b), 9].
-        outer = (u[:, :, :, None, None] * vt.transpose(0, 2, 1)[:, None, None, :, :]).transpose(0, 2, 4, 1, 3).reshape(k, 3, 3, 9)
+        outer = (u[:, :, :, None, None] * vt.transpose(0, 2, 1)[:, None, None, :, :]
+                 ).transpose(0, 2, 4, 1, 3).reshape(k, 3, 3, 9)
         q = np.empty((k, 9, 9))
         lam = np.empty((k, 9))
         diag = outer[:, np.arange(3), np.arange(3)]  # [K,3,9]: u_a v_aᵀ

@@ -97,7 +97,8 @@ class _ContactSet:
     @classmethod
     def build(cls, full_rest: np.ndarray, edges: np.ndarray, faces: np.ndarray, dmin: float) -> "_ContactSet":
         mesh = ipctk.CollisionMesh.build_from_full_mesh(
-            np.asfortranarray(full_rest), np.asfortranarray(edges.astype(np.int32)), np.asfortranarray(faces.astype(np.int32))
+            np.asfortranarray(full_rest), np.asfortranarray(edges.astype(np.int32)),
+            np.asfortranarray(faces.astype(np.int32))
         )
         ids = np.array([mesh.to_full_vertex_id(i) for i in range(mesh.num_vertices)], dtype=np.int64)
         return cls(mesh, ids, (3 * ids[:, None] + np.arange(3)).reshape(-1), float(dmin))
@@ -244,11 +245,14 @@ class IPCSimulator:
         if self.ground is not None:
             gap = float((self.rest[self.surface, 2] - self.ground).min())
             if gap <= 0:
-                raise SimulationError(f"scene {self.scene.name!r}: object rest mesh touches or crosses the ground (gap {gap:.3g} m)")
+                raise SimulationError(f"scene {self.scene.name!r}: object rest mesh touches or crosses the ground "
+                                      f"(gap {gap:.3g} m)")
         if ipctk.has_intersections(self.cm.mesh, self.cm.vertices(self.x), broad_phase=self.broad_phase):
-            raise SimulationError(f"scene {self.scene.name!r}: frame 0 intersects (the tool at its initial pose cuts the object)")
+            raise SimulationError(f"scene {self.scene.name!r}: frame 0 intersects (the tool at its initial pose cuts "
+                                  "the object)")
         if self.tool_distance() <= self.dmin:
-            raise SimulationError(f"scene {self.scene.name!r}: at frame 0 surfaces are closer than dmin = {self.dmin:.3g} m")
+            raise SimulationError(f"scene {self.scene.name!r}: at frame 0 surfaces are closer than dmin = "
+                                  f"{self.dmin:.3g} m")
         if self._settle and np.any(self.gravity != 0) and (self.ground is not None or self.pinned.any()):
             self._settle_under_gravity()
 
@@ -410,7 +414,8 @@ class IPCSimulator:
         return tcs, fp, None, self._ground_lambda(x[: self.n_obj])
 
     def _barrier_distance_sq(self, x: np.ndarray) -> float:
-        """Squared smallest barrier distance (pair distance − dmin; ground distance) among active pairs; inf if none."""
+        """Squared smallest barrier distance (pair distance − dmin; ground distance) among active pairs; inf if
+        none."""
         d2 = np.inf
         for cs in self.contact_sets:
             c, vc = self._collisions(cs, x)
@@ -431,11 +436,11 @@ class IPCSimulator:
         0.9·c0 on [0, alpha] are skipped; the rest are sampled at 64 points.
         """
         el = self.elastic
-        a = el._edge_matrix(x[: self.n_obj])
-        b = el._edge_matrix(p[: self.n_obj])
+        a = el.edge_matrix(x[: self.n_obj])
+        b = el.edge_matrix(p[: self.n_obj])
         c0 = np.linalg.det(a)
-        c1 = np.einsum("kij,kij->k", el._cofactor(a), b)
-        c2 = np.einsum("kij,kij->k", el._cofactor(b), a)
+        c1 = np.einsum("kij,kij->k", el.cofactor(a), b)
+        c2 = np.einsum("kij,kij->k", el.cofactor(b), a)
         c3 = np.linalg.det(b)
         bound = (np.abs(c1) + (np.abs(c2) + np.abs(c3) * alpha) * alpha) * alpha
         risky = bound >= 0.9 * c0
@@ -454,7 +459,8 @@ class IPCSimulator:
         alpha = 1.0
         for cs in self.contact_sets:
             a = ipctk.compute_collision_free_stepsize(
-                cs.mesh, cs.vertices(x), cs.vertices(x + p), min_distance=cs.dmin, broad_phase=self.broad_phase, narrow_phase_ccd=self.ccd
+                cs.mesh, cs.vertices(x), cs.vertices(x + p), min_distance=cs.dmin, broad_phase=self.broad_phase,
+                narrow_phase_ccd=self.ccd
             )
             alpha = min(alpha, float(a))
         if self.ground is not None:
@@ -485,7 +491,8 @@ class IPCSimulator:
             hf.sum_duplicates()
             try:
                 solver = cholespy.CholeskySolverD(
-                    hf.shape[0], hf.indptr.astype(np.int32), hf.indices.astype(np.int32), hf.data, cholespy.MatrixType.CSR
+                    hf.shape[0], hf.indptr.astype(np.int32), hf.indices.astype(np.int32), hf.data,
+                    cholespy.MatrixType.CSR
                 )
                 out = np.zeros_like(r)
                 solver.solve(r, out)
@@ -494,7 +501,7 @@ class IPCSimulator:
                     return p
             except (ValueError, RuntimeError):
                 pass
-        import scipy.sparse.linalg as spla
+        import scipy.sparse.linalg as spla  # lazy: the fallback solver, only without cholespy or when it fails
 
         p[idx] = spla.spsolve(hf.tocsc(), r)
         return p
@@ -530,9 +537,11 @@ class IPCSimulator:
             stats["iters"] += 1
             xo = x[: self.n_obj]
             g = np.zeros(n)
-            g[: 3 * self.n_obj] = (self.mass[:, None] * (xo - ctx["x_tilde"])).reshape(-1) + h2 * self.elastic.gradient(xo).reshape(-1)
+            g[: 3 * self.n_obj] = ((self.mass[:, None] * (xo - ctx["x_tilde"])).reshape(-1)
+                                   + h2 * self.elastic.gradient(xo).reshape(-1))
             if phase == 1:
-                g[3 * self.n_obj :] = (self.tool_penalty * self.tool_mass * (x[self.n_obj :] - ctx["target"])).reshape(-1)
+                g[3 * self.n_obj :] = (self.tool_penalty * self.tool_mass
+                                       * (x[self.n_obj :] - ctx["target"])).reshape(-1)
             gc, hc = self._contact_grad_hess(x, ctx, True, self.kappa)
             g += gc
             he = self.elastic.hessian(xo)
@@ -550,7 +559,8 @@ class IPCSimulator:
             alpha = self._max_step(x, p)
             if is_forced:
                 if alpha <= 1e-8:
-                    raise SimulationError(f"frame {self.frame + 1}: the tool cannot move on to its target (CCD step {alpha:.2g})")
+                    raise SimulationError(f"frame {self.frame + 1}: the tool cannot move on to its target (CCD step "
+                                          f"{alpha:.2g})")
                 stats["forced"] += 1
                 x = x + alpha * p
                 if alpha >= 1.0:
@@ -589,7 +599,8 @@ class IPCSimulator:
         xo = x[: self.n_obj]
         free = self._free_mask(False)
         ge = np.zeros(3 * self.n_all)
-        ge[: 3 * self.n_obj] = (self.mass[:, None] * (xo - x_tilde)).reshape(-1) + self.dt**2 * self.elastic.gradient(xo).reshape(-1)
+        ge[: 3 * self.n_obj] = ((self.mass[:, None] * (xo - x_tilde)).reshape(-1)
+                                + self.dt**2 * self.elastic.gradient(xo).reshape(-1))
         gb, _ = self._contact_grad_hess(x, None, False, 1.0)
         kappa, kappa_max = ipctk.initial_barrier_stiffness(
             self.bbox_diagonal,
@@ -624,7 +635,8 @@ class IPCSimulator:
         snapped = np.any(rest != 0) and self._max_step(x, rest) >= 1.0
         if snapped:
             x[self.n_obj :] = target
-        if stats["iters"] > 0 and (not np.any(rest != 0) or (snapped and np.abs(rest).max() < self.newton_tol * self.bbox_diagonal * self.dt)):
+        if stats["iters"] > 0 and (not np.any(rest != 0) or (
+                snapped and np.abs(rest).max() < self.newton_tol * self.bbox_diagonal * self.dt)):
             # Phase 1 converged and the snap moved the tool by less than the Newton tolerance: the
             # object's Newton step it induces, H_oo⁻¹ H_ot δ, is of the same size, so x is converged.
             ok = True
@@ -703,7 +715,8 @@ class IPCSimulator:
         v0, v1 = self.cm.vertices(x0), self.cm.vertices(x1)
         if ipctk.has_intersections(self.cm.mesh, v1, broad_phase=self.broad_phase):
             raise SimulationError(f"frame {frame}: the surface intersects itself or the tool")
-        if not ipctk.is_step_collision_free(self.cm.mesh, v0, v1, broad_phase=self.broad_phase, narrow_phase_ccd=self.verify_ccd):
+        if not ipctk.is_step_collision_free(self.cm.mesh, v0, v1, broad_phase=self.broad_phase,
+                                            narrow_phase_ccd=self.verify_ccd):
             raise SimulationError(f"frame {frame}: the straight motion from frame {frame - 1} is not collision-free")
         if self.ground is not None and np.any(x1[self.surface, 2] <= self.ground):
             raise SimulationError(f"frame {frame}: an object vertex is at or below the ground")
@@ -711,7 +724,8 @@ class IPCSimulator:
         if np.any(j <= 0):
             raise SimulationError(f"frame {frame}: {int(np.sum(j <= 0))} tets inverted")
         if not np.array_equal(x1[self.n_obj :], target):
-            raise SimulationError(f"frame {frame}: the tool is off its target by {np.abs(x1[self.n_obj:] - target).max():.3g} m")
+            raise SimulationError(f"frame {frame}: the tool is off its target by "
+                                  f"{np.abs(x1[self.n_obj:] - target).max():.3g} m")
 
     # ================================================================= settle
     def _settle_under_gravity(self, max_steps: int = 100) -> None:

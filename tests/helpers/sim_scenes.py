@@ -74,7 +74,8 @@ def assert_sequence_crossing_free(seq, ground_height=None) -> None:
         v = cm.vertices(np.vstack([seq.object_positions[t], seq.tool_positions[t]]))
         assert not ipctk.has_intersections(cm, v), f"frame {t} intersects"
         if prev is not None:
-            assert ipctk.is_step_collision_free(cm, prev, v, narrow_phase_ccd=ccd), f"crossing between frames {t - 1} and {t}"
+            assert ipctk.is_step_collision_free(cm, prev, v,
+                                                narrow_phase_ccd=ccd), f"crossing between frames {t - 1} and {t}"
         if ground_height is not None:
             assert seq.object_positions[t][:, 2].min() > ground_height, f"frame {t} below the ground"
         prev = v

@@ -1,19 +1,17 @@
 """``colgnn evaluate``: accuracy and collision metrics of a model on a dataset's held-out test sequences.
 
 For every ``test_XXXX.npz`` of a dataset folder (``colgnn generate``), the model is rolled out on the
-sequence's tool poses from its frame 0 (:func:`colgnn_core.rollout.rollout`), once per mode: ``raw`` (the
+sequence's tool poses from its frame 0 (:func:`colgnn_core.runtime.rollout.rollout`), once per mode: ``raw`` (the
 network alone) and ``corrected`` (through the Predictor's collision-aware correction). Reported
-(ARCHITECTURE.md, "Metrics"):
+(docs/ARCHITECTURE.md, "Metrics"):
 
 * rollout RMSE of the positions (all mesh vertices) as a fraction of the object's rest bounding-box diagonal
-  (:func:`colgnn_core.bench.rmse_fraction`) at steps 1, 10, 50 (where the sequences are long enough) and over
-  all steps (per sequence the mean of steps 1..T-1), mean ± std over the test sequences, and the per-step
-  curve;
+  (:func:`colgnn_core.evaluation.measure.rmse_fraction`) at steps 1, 10, 50 (where the sequences are long
+  enough) and over all steps (per sequence the mean of steps 1..T-1), mean ± std over the test sequences, and
+  the per-step curve;
 * crossings over [t, t+1] (N_vf, d_vf mean/max, N_ee, d_ee mean/max) and penetrations per frame of the
   ground truth and of each rollout (:func:`colgnn_core.collision.metrics.sequence_metrics`, exact oracle
-  unless ``exact=False``). Across sequences: N_* is crossings per step (all steps pooled), d_*_mean the mean
-  depth over every crossing pair, d_*_max the largest; "intersecting frames" counts frames with any
-  penetration (an object vertex inside the tool, a tool vertex inside the object, or intersecting triangles).
+  unless ``exact=False``), pooled across sequences by :func:`colgnn_core.evaluation.measure.collision_aggregate`.
 
 Outputs in ``out_dir``: ``metrics.json`` (atomic), ``metrics.md`` (Markdown table), ``rmse_over_time.png``.
 """
@@ -21,61 +19,32 @@ Outputs in ``out_dir``: ``metrics.json`` (atomic), ``metrics.md`` (Markdown tabl
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 
-from colgnn_core.bench import rmse_fraction
-from colgnn_core.collision.metrics import PENETRATION_KEYS, sequence_metrics
+from colgnn_core.collision.metrics import sequence_metrics
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import collision_aggregate, mean_std, rmse_fraction, stats, test_files
+from colgnn_core.evaluation.render import save_png
 from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
+from colgnn_core.learn.data import load_checked_sequence
+from colgnn_core.runtime.models import load_model
+from colgnn_core.runtime.rollout import rollout
+from colgnn_core.scenes import scene_names
 
 MODES = ("raw", "corrected")
 RMSE_STEPS = (1, 10, 50)
 ROW_LABELS = {"ground_truth": "ground truth", "raw": "raw network", "corrected": "corrected"}
 
 
-def _mean_std(values) -> dict:
-    v = np.asarray(values, dtype=np.float64)
-    if v.size == 0:
-        return {"mean": None, "std": None, "n": 0}
-    return {"mean": float(v.mean()), "std": float(v.std()), "n": int(v.size)}
-
-
-def _collision_aggregate(per_seq: list[dict]) -> dict:
-    """Pool the per-sequence :func:`sequence_metrics` results (see the module docstring)."""
-    steps = sum(len(m["steps"]["N_vf"]) for m in per_seq)
-    frames = sum(m["frames_count"] for m in per_seq)
-    out: dict = {"steps": int(steps), "frames": int(frames)}
-    for kind in ("vf", "ee"):
-        n = np.concatenate([np.asarray(m["steps"][f"N_{kind}"], dtype=np.float64) for m in per_seq])
-        d = np.concatenate([np.asarray(m["steps"][f"d_{kind}_mean"], dtype=np.float64) for m in per_seq])
-        dmax = np.concatenate([np.asarray(m["steps"][f"d_{kind}_max"], dtype=np.float64) for m in per_seq])
-        total = float(n.sum())
-        out[f"N_{kind}"] = total / steps if steps else 0.0
-        out[f"N_{kind}_total"] = int(total)
-        out[f"N_{kind}_max"] = int(n.max()) if n.size else 0
-        out[f"d_{kind}_mean"] = float((n * d).sum() / total) if total > 0 else 0.0
-        out[f"d_{kind}_max"] = float(dmax.max()) if dmax.size else 0.0
-    hit = np.concatenate([np.any([np.asarray(m["frames"][k]) > 0 for k in PENETRATION_KEYS], axis=0)
-                          for m in per_seq])
-    out["intersecting_frames"] = int(hit.sum())
-    out["intersecting_frames_fraction"] = float(hit.mean()) if hit.size else 0.0
-    for k in PENETRATION_KEYS:
-        v = np.concatenate([np.asarray(m["frames"][k], dtype=np.float64) for m in per_seq])
-        out[f"{k}_total"] = int(v.sum())
-        out[f"{k}_max"] = int(v.max()) if v.size else 0
-    return out
-
-
 def _rmse_summary(curves: list[np.ndarray]) -> dict:
     """RMSE at RMSE_STEPS and over all steps (mean ± std over sequences) plus the mean/std curve."""
     out: dict = {}
     for k in RMSE_STEPS:
-        out[f"step_{k}"] = _mean_std([c[k] for c in curves if len(c) > k])
-    out["all"] = _mean_std([float(c[1:].mean()) for c in curves if len(c) > 1])
+        out[f"step_{k}"] = mean_std([c[k] for c in curves if len(c) > k])
+    out["all"] = mean_std([float(c[1:].mean()) for c in curves if len(c) > 1])
     T = max(len(c) for c in curves)
     mean, std, n = [], [], []
     for t in range(T):
@@ -85,19 +54,6 @@ def _rmse_summary(curves: list[np.ndarray]) -> dict:
         n.append(len(v))
     out["curve"] = {"mean": mean, "std": std, "n": n}
     return out
-
-
-def _test_files(data_dir, scene) -> list[Path]:
-    from colgnn_core.learn.data import check_manifest, dataset_files, read_manifest
-
-    if data_dir is None:
-        raise InputError("no test data: pass --data DIR, a dataset folder made by `colgnn generate` "
-                         "(datasets are not shipped)")
-    data_dir = Path(data_dir)
-    if not data_dir.is_dir():
-        raise InputError(f"no such dataset folder (--data): {data_dir}")
-    check_manifest(read_manifest(data_dir), scene, str(data_dir / "manifest.json"))
-    return dataset_files(data_dir, "test")
 
 
 def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evaluate",
@@ -118,10 +74,6 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
     Returns:
         The content of ``metrics.json`` (with 'files': the paths written).
     """
-    from colgnn_core.learn.data import load_checked_sequence
-    from colgnn_core.rollout import load_model, rollout
-    from colgnn_core.scenes import load_scene, scene_names
-
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
     modes = tuple(correction_modes)
@@ -131,12 +83,12 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
     if max_sequences is not None and max_sequences < 1:
         raise InputError(f"max_sequences must be >= 1, got {max_sequences}")
     if data_dir is None:
-        _test_files(None, None)
+        test_files(None, None)
     loaded = load_model(checkpoint if checkpoint is not None else scene_name)
     if loaded.meta.scene != scene_name:
         raise InputError(f"checkpoint is for scene {loaded.meta.scene!r}, not {scene_name!r}")
-    scene = load_scene(loaded.meta.scene, loaded.meta.resolution)
-    files = _test_files(data_dir, scene)
+    scene = loaded.meta.load_scene()
+    files = test_files(data_dir, scene)
     if max_sequences is not None:
         files = files[:max_sequences]
     out = ensure_writable_dir(out_dir)
@@ -171,7 +123,7 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
                       if k not in ("step_ms",) and not k.endswith("_ms") and np.asarray(v).dtype.kind in "iu"}
             rec[mode] = {"rmse": [float(e) for e in err], "rmse_all": float(err[1:].mean()) if len(err) > 1 else 0.0,
                          "collisions": m["summary"], "extra_totals": totals,
-                         "step_ms_median": float(np.median(seq.extra["step_ms"][1:])) if gt.frames > 1 else 0.0,
+                         "step_ms_median": stats(seq.extra["step_ms"][1:], empty=0.0)["median"],
                          "rollout_s": t_roll, "metrics_s": time.perf_counter() - t0}
         per_sequence.append(rec)
         if progress:
@@ -179,9 +131,9 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
                      for mode in modes]
             print(f"[{i + 1}/{len(files)}] {path.name}: " + "; ".join(parts), flush=True)
 
-    rows: dict = {"ground_truth": {"rmse": None, "collisions": _collision_aggregate(coll["ground_truth"])}}
+    rows: dict = {"ground_truth": {"rmse": None, "collisions": collision_aggregate(coll["ground_truth"])}}
     for mode in modes:
-        rows[mode] = {"rmse": _rmse_summary(curves[mode]), "collisions": _collision_aggregate(coll[mode])}
+        rows[mode] = {"rmse": _rmse_summary(curves[mode]), "collisions": collision_aggregate(coll[mode])}
     result = {
         "scene": scene.name,
         "resolution": scene.resolution,
@@ -253,12 +205,10 @@ def format_markdown(result: dict) -> str:
 def plot_curves(curves: dict[str, tuple], title: str, path: Path, dashed: tuple[str, ...] = ()) -> Path:
     """RMSE over time as a PNG: ``curves`` maps a label to (mean [T], std [T] or None), fractions of the bbox
     diagonal (plotted in %, with a ±std band where given); labels in ``dashed`` are drawn dashed."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib is heavy and only the plots need it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from colgnn_core.render import save_png
 
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
     for label, (mean, std) in curves.items():
@@ -280,18 +230,8 @@ def plot_curves(curves: dict[str, tuple], title: str, path: Path, dashed: tuple[
 
 def plot_rmse(result: dict, path: Path) -> Path:
     """RMSE over time (mean ± std band over sequences) per mode, as a PNG (matplotlib, Agg)."""
-    curves = {ROW_LABELS.get(m, m): (result["rows"][m]["rmse"]["curve"]["mean"], result["rows"][m]["rmse"]["curve"]["std"])
+    curves = {ROW_LABELS.get(m, m): (result["rows"][m]["rmse"]["curve"]["mean"],
+                                     result["rows"][m]["rmse"]["curve"]["std"])
               for m in result["modes"]}
     return plot_curves(curves, f"{result['scene']} ({result['resolution']}): rollout error, "
                        f"{len(result['sequences'])} test sequence(s)", path, dashed=(ROW_LABELS["corrected"],))
-
-
-def _finite(obj) -> bool:
-    """True when every number in a JSON-like structure is finite (None allowed)."""
-    if isinstance(obj, dict):
-        return all(_finite(v) for v in obj.values())
-    if isinstance(obj, (list, tuple)):
-        return all(_finite(v) for v in obj)
-    if isinstance(obj, float):
-        return math.isfinite(obj)
-    return True

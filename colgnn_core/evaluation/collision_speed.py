@@ -1,4 +1,4 @@
-"""Collision-detection benchmark on a contact step (``colgnn bench`` reuses :func:`bench_collision`).
+"""``colgnn bench --collision``: collision detection timed against ipctk on one contact step.
 
 The step is built from a scene's rest mesh (see :func:`contact_step`): the tool
 moves along its stab direction, pressed into the object, whose surface wraps the
@@ -20,7 +20,10 @@ import numpy as np
 from colgnn_core.collision.exact import ccd_edge_edge, ccd_vertex_face, is_step_collision_free
 from colgnn_core.collision.pipeline import CollisionDetector, pair_points
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import quat_to_matrix
+from colgnn_core.io import load_sequence
+from colgnn_core.scenes import load_scene
 
 __all__ = ["contact_step", "step_from_sequence", "bench_collision", "format_bench_collision"]
 
@@ -129,7 +132,7 @@ def _median_ms(fn, repeats: int) -> tuple[float, list[float], object]:
         t = time.perf_counter()
         out = fn()
         times.append(1e3 * (time.perf_counter() - t))
-    return float(np.median(times)), times, out
+    return stats(times)["median"], times, out
 
 
 def bench_collision(scene_name: str = "cone_bunny", resolution: str = "full", *, repeats: int = 30,
@@ -139,8 +142,8 @@ def bench_collision(scene_name: str = "cone_bunny", resolution: str = "full", *,
 
     The step: ``step`` (a dict as returned by :func:`contact_step`), else the deepest-contact
     step of ``sequence`` (a Sequence or a path; ``frame`` picks another), else a synthetic
-    :func:`contact_step` of the scene. Keys: scene, resolution, step_source, threads, sizes (surface vertices, faces, edges, tool
-    vertices), candidates / survivors / crossings per kind, culled_fraction (filter
+    :func:`contact_step` of the scene. Keys: scene, resolution, step_source, threads, sizes (surface vertices,
+    faces, edges, tool vertices), candidates / survivors / crossings per kind, culled_fraction (filter
     culls among broad-phase candidates), culled_fraction_of_noncolliding (the same among
     candidates ipctk finds contact-free), median ms for broad, filter_narrow (one fused kernel) and total
     (``ours_ms``), ipctk
@@ -149,14 +152,10 @@ def bench_collision(scene_name: str = "cone_bunny", resolution: str = "full", *,
     crossings with ipctk's hits.
     """
     if scene is None:
-        from colgnn_core.scenes import load_scene
-
         scene = load_scene(scene_name, resolution)
     tool = scene.tool
     source = "given step"
     if step is None and sequence is not None:
-        from colgnn_core.io import load_sequence
-
         seq = sequence if hasattr(sequence, "object_positions") else load_sequence(sequence)
         step, frame = step_from_sequence(seq, tool, frame)
         source = f"sequence frame {frame} -> {frame + 1}"
@@ -211,7 +210,7 @@ def bench_collision(scene_name: str = "cone_bunny", resolution: str = "full", *,
         agree += int(np.isin(skey[our], ipc_hit_keys).sum())
     n_c, n_s = cand.total(), surv.total()
     n_hits = sum(int(h.sum()) for h in hits.values())
-    med = {k: float(np.median(v)) for k, v in timings.items()}
+    med = {k: stats(v)["median"] for k, v in timings.items()}
     So = det.object_surface
     return {
         "scene": getattr(scene, "name", scene_name), "resolution": getattr(scene, "resolution", resolution),
@@ -231,8 +230,8 @@ def bench_collision(scene_name: str = "cone_bunny", resolution: str = "full", *,
         "culled_fraction_of_noncolliding": ((n_c - n_s) / (n_c - n_hits)) if n_c > n_hits else None,
         "broad_ms": med["broad"], "filter_narrow_ms": med["filter_narrow"], "ours_ms": med["total"],
         "ours_ms_sum_of_stage_medians": med["broad"] + med["filter_narrow"],
-        "ours_cpu_ms": float(np.median(cpu_ms)),
-        "ours_ms_p95": float(np.percentile(timings["total"], 95)),
+        "ours_cpu_ms": stats(cpu_ms)["median"],
+        "ours_ms_p95": stats(timings["total"])["p95"],
         "ipctk_pairs_ms": ipctk_ms, "ipctk_step_ms": step_ms,
         "speedup_vs_ipctk_pairs": ipctk_ms / med["total"] if med["total"] > 0 else None,
         # Like for like: the same candidate pairs in, the same question out (does it collide?).
@@ -267,5 +266,6 @@ def format_bench_collision(r: dict) -> str:
         ("speed-up vs ipctk full step", f"{r['speedup_vs_ipctk_step']:.1f}x"),
     ]
     w = max(len(k) for k, _ in rows)
-    head = f"collision benchmark: {r['scene']} ({r['resolution']}), {r['repeats']} repeats, load {r['load_average_1min']:.2f}"
+    head = (f"collision benchmark: {r['scene']} ({r['resolution']}), {r['repeats']} repeats, "
+            f"load {r['load_average_1min']:.2f}")
     return "\n".join([head] + [f"  {k.ljust(w)}  {v}" for k, v in rows])

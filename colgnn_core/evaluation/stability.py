@@ -22,7 +22,12 @@ import time
 
 import numpy as np
 
+from colgnn_core.collision.exact import self_intersects, tool_intersects, tool_step_free
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.measure import family_poses, stats
+from colgnn_core.geometry.transforms import interpolate_poses
+from colgnn_core.runtime.predictor import Predictor
+from colgnn_core.scenes.trajectories import scripted_poses
 
 
 def rss_mb() -> float:
@@ -50,19 +55,10 @@ def rigid_shape_error(x: np.ndarray, rest: np.ndarray) -> tuple[float, float]:
 
 def _leave_and_settle(scene, last: np.ndarray, max_translation: float, settle: int) -> np.ndarray:
     """Poses from ``last`` back to the rest pose in steps of at most ``max_translation``, then ``settle`` holds."""
-    from colgnn_core.geometry.transforms import interpolate_poses
-
     rest = scene.tool_rest_pose
     n = max(1, int(np.ceil(np.linalg.norm(rest[:3] - last[:3]) / (0.9 * max_translation))))
     back = interpolate_poses(last, rest, np.arange(1, n + 1) / n)
     return np.concatenate([back, np.repeat(rest[None], settle, axis=0)])
-
-
-def family_poses(scene, frames: int, index: int = 0) -> np.ndarray:
-    """The ``index``-th held-out test trajectory of the scene's family, ``frames`` long [frames,7]."""
-    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
-
-    return sample_poses(scene, split_seeds("test", index + 1)[index], frames)
 
 
 def hard_cases(scene, frames: int = 40, random_steps: int = 2000) -> dict[str, np.ndarray]:
@@ -77,8 +73,6 @@ def hard_cases(scene, frames: int = 40, random_steps: int = 2000) -> dict[str, n
     * ``random with tilts``: ``random_steps`` steps of smooth random motion with the family's tilts (left out
       when ``random_steps`` is 0).
     """
-    from colgnn_core.scenes.trajectories import scripted_poses
-
     graze = scripted_poses(scene, "drag", frames)
     graze[:, 2] += float(scene.family["depth"][0]) - 0.3 * scene.dhat
     jitter = scripted_poses(scene, "press", frames)
@@ -103,35 +97,33 @@ def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
     fallbacks_total, before (crossings found before the correction), after_nonzero (steps the Predictor itself
     reported unclean after its correction), substeps.
     """
-    from colgnn_core.collision.exact import tool_intersects, tool_step_free
-
     scene = pred.scene
     F, TF = scene.object.faces, scene.tool.faces
     pred.reset(tool_pose=poses[0])
     prev, prev_tool = pred.positions, scene.tool.world_vertices(pred.tool_pose)
-    stats = {"steps": 0, "checked": 0, "intersecting": 0, "crossing": 0, "contact": 0, "fallback_steps": 0,
+    counts = {"steps": 0, "checked": 0, "intersecting": 0, "crossing": 0, "contact": 0, "fallback_steps": 0,
              "before": 0, "after_nonzero": 0, "substeps": 0}
     for k in range(1, len(poses)):
         r = pred.step(poses[k])
         if not np.isfinite(r.positions).all():
             raise InputError(f"the rollout became non-finite at step {k}")
-        stats["steps"] += 1
-        stats["fallback_steps"] += int(r.fallback)
+        counts["steps"] += 1
+        counts["fallback_steps"] += int(r.fallback)
         before = r.vertex_face_before + r.edge_edge_before
-        stats["before"] += before
-        stats["substeps"] += r.substeps
-        stats["after_nonzero"] += bool(r.vertex_face_after or r.edge_edge_after or r.penetrating_vertices_after)
+        counts["before"] += before
+        counts["substeps"] += r.substeps
+        counts["after_nonzero"] += bool(r.vertex_face_after or r.edge_edge_after or r.penetrating_vertices_after)
         if k % check_every == 0 or before or r.fallback:
-            stats["checked"] += 1
-            stats["intersecting"] += tool_intersects(r.positions, F, r.tool_vertices, TF)
+            counts["checked"] += 1
+            counts["intersecting"] += tool_intersects(r.positions, F, r.tool_vertices, TF)
             # With substeps the published step is not one linear motion: only its frames are checked.
             if r.substeps == 1 and not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF):
-                stats["crossing"] += 1
-                stats["contact"] += not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF,
+                counts["crossing"] += 1
+                counts["contact"] += not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF,
                                                        contact_only=True)
         prev, prev_tool = r.positions, r.tool_vertices
-    stats["fallbacks_total"] = pred.fallbacks
-    return stats
+    counts["fallbacks_total"] = pred.fallbacks
+    return counts
 
 
 def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, seed: int = 0,
@@ -140,11 +132,7 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
     """Run the long rollout (see the module docstring) and return a JSON-ready report.
 
     ``limits``: output caps of the Predictor ('none' or 'data', see :meth:`Predictor.from_checkpoint`);
-    ``rest_relaxation``: see :class:`~colgnn_core.predictor.Predictor`."""
-    from colgnn_core.collision.exact import self_intersects, tool_intersects
-    from colgnn_core.predictor import Predictor
-    from colgnn_core.scenes.trajectories import scripted_poses
-
+    ``rest_relaxation``: see :class:`~colgnn_core.runtime.predictor.Predictor`."""
     if steps < 1 or settle < 1 or check_every < 1 or memory_every < 1:
         raise InputError("steps, settle, check_every and memory_every must be >= 1")
     pred = Predictor.from_checkpoint(checkpoint_or_scene, threads=threads, compile=compile, limits=limits,
@@ -155,13 +143,13 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
     faces, tool_faces = scene.object.faces, scene.tool.faces
     pred.reset(tool_pose=poses[0])
     rest = scene.object.vertices
-    stats = {"tool_intersecting_frames": 0, "self_intersecting_frames": 0, "checked_frames": 0, "fallbacks": 0,
+    counts = {"tool_intersecting_frames": 0, "self_intersecting_frames": 0, "checked_frames": 0, "fallbacks": 0,
              "crossings_before": 0, "steps_done": 0}
     memory: list[tuple[int, float]] = [(0, rss_mb())]
     step_ms: list[float] = []
     frames = range(1, len(poses))
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
 
         frames = tqdm(frames, desc=f"{scene.name} stability", unit="step", mininterval=1.0)
     t_start = time.perf_counter()
@@ -170,13 +158,13 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
         if not np.isfinite(r.positions).all():
             raise InputError(f"the rollout became non-finite at step {k}")
         step_ms.append(r.timings_ms["total"])
-        stats["steps_done"] = k
-        stats["fallbacks"] += int(r.fallback)
-        stats["crossings_before"] += r.vertex_face_before + r.edge_edge_before
+        counts["steps_done"] = k
+        counts["fallbacks"] += int(r.fallback)
+        counts["crossings_before"] += r.vertex_face_before + r.edge_edge_before
         if k % check_every == 0 or r.fallback or k == len(poses) - 1:
-            stats["checked_frames"] += 1
-            stats["tool_intersecting_frames"] += tool_intersects(r.positions, faces, r.tool_vertices, tool_faces)
-            stats["self_intersecting_frames"] += self_intersects(r.positions, faces)
+            counts["checked_frames"] += 1
+            counts["tool_intersecting_frames"] += tool_intersects(r.positions, faces, r.tool_vertices, tool_faces)
+            counts["self_intersecting_frames"] += self_intersects(r.positions, faces)
         if k % memory_every == 0:
             memory.append((k, rss_mb()))
     diagonal = scene.bbox_diagonal()
@@ -185,12 +173,13 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
     mb = np.array([m for _, m in memory])
     late = ks >= 0.25 * ks[-1]
     slope = float(np.polyfit(ks[late], mb[late], 1)[0] * 1000.0) if late.sum() >= 3 else float("nan")
+    step = stats(step_ms)
     return {
         "scene": scene.name, "resolution": scene.resolution, "checkpoint": str(checkpoint_or_scene),
         "random_steps": steps, "leave_and_settle_steps": len(poses) - 1 - steps, "seed": seed,
         "threads": pred.threads, "compiled": pred.compiled, "limits": limits, "rest_relaxation": rest_relaxation,
-        "relaxed_steps": pred.relaxed_steps, **stats,
-        "step_ms_median": float(np.median(step_ms)), "step_ms_p95": float(np.percentile(step_ms, 95)),
+        "relaxed_steps": pred.relaxed_steps, **counts,
+        "step_ms_median": step["median"], "step_ms_p95": step["p95"],
         "rss_mb_start": float(mb[0]), "rss_mb_end": float(mb[-1]), "rss_mb_per_1000_steps": slope,
         "rss_mb_samples": [[int(k), round(float(m), 1)] for k, m in memory],
         "rest_rmse_fraction": rmse / diagonal, "rest_max_fraction": worst / diagonal,

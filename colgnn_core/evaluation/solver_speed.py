@@ -1,4 +1,5 @@
-"""IPC solver benchmark: ms per step and Newton iterations on a scene's trajectory (reused by ``colgnn bench``)."""
+"""The IPC solver's cost: ms per step and Newton iterations on a scene's trajectory, and from them an estimate of
+the time to generate a dataset."""
 
 from __future__ import annotations
 
@@ -6,6 +7,9 @@ import time
 from typing import Any
 
 import numpy as np
+
+from colgnn_core.evaluation.measure import stats
+from colgnn_core.sim.ipc import IPCSimulator
 
 
 def mesh_counts(scene) -> dict[str, int]:
@@ -31,8 +35,6 @@ def bench_ipc(scene, poses: np.ndarray, progress: bool = False, **sim_options: A
     steps (object–tool distance below dmin + dhat at the end of the step).
     A SimulationError propagates (a benchmark of a failing solve is meaningless).
     """
-    from colgnn_core.sim.ipc import IPCSimulator
-
     poses = scene.check_poses(poses)
     t0 = time.perf_counter()
     sim = IPCSimulator(scene, initial_tool_pose=poses[0], **sim_options)
@@ -40,7 +42,7 @@ def bench_ipc(scene, poses: np.ndarray, progress: bool = False, **sim_options: A
     ms, iters, contact = [], [], []
     steps = range(1, len(poses))
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
 
         steps = tqdm(steps, desc=f"bench {scene.name}/{scene.resolution}", unit="step", leave=False)
     for k in steps:
@@ -53,10 +55,11 @@ def bench_ipc(scene, poses: np.ndarray, progress: bool = False, **sim_options: A
     def summary(mask: np.ndarray) -> dict[str, float | int | None]:
         if not mask.any():
             return {"steps": 0, "ms_median": None, "ms_p95": None, "newton_mean": None, "newton_max": None}
+        st = stats(ms_a[mask])
         return {
             "steps": int(mask.sum()),
-            "ms_median": float(np.median(ms_a[mask])),
-            "ms_p95": float(np.percentile(ms_a[mask], 95)),
+            "ms_median": st["median"],
+            "ms_p95": st["p95"],
             "newton_mean": float(it_a[mask].mean()),
             "newton_max": int(it_a[mask].max()),
         }
@@ -76,7 +79,8 @@ def bench_ipc(scene, poses: np.ndarray, progress: bool = False, **sim_options: A
     }
 
 
-def estimate_generation_s(result: dict, train: int = 20, test: int = 5, frames: int = 40, contact_fraction: float | None = None) -> float:
+def estimate_generation_s(result: dict, train: int = 20, test: int = 5, frames: int = 40,
+                          contact_fraction: float | None = None) -> float:
     """Single-core seconds to simulate ``train + test`` sequences of ``frames`` frames, from a bench result.
 
     Uses the contact and free-motion medians weighted by ``contact_fraction`` (default: the

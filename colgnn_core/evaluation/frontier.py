@@ -16,6 +16,7 @@ summed over the steps, ipctk oracle) and intersecting frames. Outputs in ``out_d
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from pathlib import Path
@@ -23,10 +24,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from colgnn_core.bench import rmse_fraction
 from colgnn_core.collision.metrics import sequence_metrics
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.accuracy import write_report
+from colgnn_core.evaluation.measure import collision_aggregate, rmse_fraction, stats, test_files
+from colgnn_core.evaluation.render import save_png
 from colgnn_core.io import ensure_writable_dir, load_sequence
+from colgnn_core.learn.data import load_checked_sequence
+from colgnn_core.runtime.models import load_model
+from colgnn_core.runtime.rollout import rollout
+from colgnn_core.scenes import load_scene, scene_names
+from colgnn_core.sim.dataset import simulate_sequence
 
 IPC_SETTINGS: tuple[tuple[str, dict], ...] = (
     ("IPC (data settings)", {}),
@@ -50,11 +58,9 @@ def _label(loaded, path) -> str:
 
 def _point(label: str, kind: str, seqs: list, truths: list, ms: list[float], diagonal: float, exact: bool) -> dict:
     """One frontier point from rollouts ``seqs`` against ``truths`` (Sequences) and per-step times ``ms``."""
-    from colgnn_core.evaluate import _collision_aggregate
-
     last = [float(rmse_fraction(s.object_positions, t.object_positions, diagonal)[-1]) for s, t in zip(seqs, truths)]
-    agg = _collision_aggregate([sequence_metrics(s, exact=exact) for s in seqs])
-    return {"label": label, "kind": kind, "ms_median": float(np.median(ms)), "rmse_last": float(np.mean(last)),
+    agg = collision_aggregate([sequence_metrics(s, exact=exact) for s in seqs])
+    return {"label": label, "kind": kind, "ms_median": stats(ms)["median"], "rmse_last": float(np.mean(last)),
             "rmse_last_std": float(np.std(last)), "crossings": agg["N_vf_total"] + agg["N_ee_total"],
             "intersecting_frames": agg["intersecting_frames"]}
 
@@ -71,18 +77,12 @@ def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier
         steps: rollout length (the sequences must have at least ``steps`` + 1 frames).
         max_sequences: how many test sequences (the first ones).
         threads: torch threads for every network (set process-wide).
-        compile: torch.compile the networks (see :class:`~colgnn_core.predictor.Predictor`).
+        compile: torch.compile the networks (see :class:`~colgnn_core.runtime.predictor.Predictor`).
         ipc: include the solver points (re-simulated: the slow part at full resolution).
         ipc_sequences: re-simulate only the first this many sequences for the solver points (default: all the
             network points use); at full resolution a solver step takes seconds.
         exact: crossings with ipctk's exact CCD (False: the project's narrow phase).
     """
-    from colgnn_core.evaluate import _test_files, write_report
-    from colgnn_core.learn.data import load_checked_sequence
-    from colgnn_core.rollout import load_model, rollout
-    from colgnn_core.scenes import load_scene, scene_names
-    from colgnn_core.sim.dataset import simulate_sequence
-
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
     if not checkpoints:
@@ -99,7 +99,7 @@ def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier
     if len(resolutions) != 1:
         raise InputError(f"the checkpoints mix resolutions {sorted(resolutions)}")
     scene = load_scene(scene_name, resolutions.pop())
-    files = _test_files(data_dir, scene)[:max_sequences]
+    files = test_files(data_dir, scene)[:max_sequences]
     truths = []
     for f in files:
         load_checked_sequence(f, scene)
@@ -151,8 +151,6 @@ def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier
 
 def _head(seq, frames: int):
     """The first ``frames`` frames of a Sequence (per-frame arrays cut, the rest kept)."""
-    import dataclasses
-
     cut = {}
     for f in dataclasses.fields(seq):
         v = getattr(seq, f.name)
@@ -182,12 +180,10 @@ def format_frontier(result: dict) -> str:
 
 def plot_frontier(result: dict, path: Path) -> Path:
     """Log-x scatter of ms/step against RMSE, crossings annotated; written atomically as PNG."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib is heavy and only the plots need it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from colgnn_core.render import save_png
 
     style = {"raw": ("o", "tab:orange"), "corrected": ("s", "tab:blue"), "ipc": ("^", "tab:green")}
     fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=110)

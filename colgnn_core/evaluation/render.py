@@ -11,9 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from colgnn_core.errors import InputError
-from colgnn_core.io import Sequence, atomic_write
+from colgnn_core.geometry.transforms import quat_to_matrix
+from colgnn_core.io import Sequence, atomic_write, load_sequence
 
 _TOOL_COLOR = (0.55, 0.58, 0.62, 0.35)
 _PENETRATION_COLOR = np.array([0.85, 0.05, 0.05, 1.0])
@@ -21,7 +23,7 @@ _PENETRATION_COLOR = np.array([0.85, 0.05, 0.05, 1.0])
 
 def save_png(fig, path: str | Path) -> Path:
     """Lay out ``fig``, write it to ``path`` as PNG (atomically) and close it."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: matplotlib is heavy and only the pictures need it
 
     fig.tight_layout()
     with atomic_write(path, "wb") as fh:
@@ -32,8 +34,6 @@ def save_png(fig, path: str | Path) -> Path:
 
 def tool_signed_distance(points: np.ndarray, tool_vertices: np.ndarray, tool_faces: np.ndarray) -> np.ndarray:
     """Signed distance [N] (m) of ``points`` [N,3] to a closed tool mesh; negative inside."""
-    import trimesh
-
     mesh = trimesh.Trimesh(tool_vertices, tool_faces, process=False)
     _, dist, _ = trimesh.proximity.closest_point(mesh, points)
     inside = mesh.contains(points) if mesh.is_watertight else np.zeros(len(points), bool)
@@ -64,8 +64,6 @@ def section_plane(seq: Sequence, frames: list[int]) -> tuple[np.ndarray, np.ndar
 
     The normal is the tool frame's x axis made horizontal, so a knife is cut across its blade.
     """
-    from colgnn_core.geometry.transforms import quat_to_matrix
-
     pose = seq.tool_poses[frames[len(frames) // 2]]
     normal = quat_to_matrix(pose[3:])[:, 0].copy()
     normal[2] = 0.0
@@ -83,7 +81,7 @@ def pick_frames(total: int, count: int) -> list[int]:
 
 
 def _face_colors(seq: Sequence, frame: int, scale: float) -> np.ndarray:
-    import matplotlib
+    import matplotlib  # lazy: matplotlib is heavy and only the pictures need it
 
     faces = seq.object_faces
     verts = seq.object_positions[frame]
@@ -95,11 +93,12 @@ def _face_colors(seq: Sequence, frame: int, scale: float) -> np.ndarray:
 
 
 def _draw_frame(ax, seq: Sequence, frame: int, scale: float, limits: tuple[np.ndarray, np.ndarray], title: str) -> None:
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # lazy: part of matplotlib (heavy, pictures only)
 
     obj = seq.object_positions[frame][seq.object_faces]
     tool = seq.tool_positions[frame][seq.tool_faces]
-    ax.add_collection3d(Poly3DCollection(obj, facecolors=_face_colors(seq, frame, scale), edgecolor="none", linewidth=0))
+    ax.add_collection3d(Poly3DCollection(obj, facecolors=_face_colors(seq, frame, scale), edgecolor="none",
+                                         linewidth=0))
     ax.add_collection3d(Poly3DCollection(tool, facecolors=_TOOL_COLOR, edgecolor="none", linewidth=0))
     lo, hi = limits
     ax.set_xlim(lo[0], hi[0])
@@ -113,7 +112,7 @@ def _draw_frame(ax, seq: Sequence, frame: int, scale: float, limits: tuple[np.nd
 
 def _draw_section(ax, seq: Sequence, frame: int, plane, window: tuple[np.ndarray, np.ndarray]) -> None:
     """Cross-section through the contact: object outline (blue), tool outline (grey), crossings in red."""
-    from matplotlib.collections import LineCollection
+    from matplotlib.collections import LineCollection  # lazy: matplotlib is heavy and only the pictures need it
 
     origin, normal, axis = plane
     to2d = lambda seg: np.stack([(seg - origin) @ axis, seg[..., 2]], axis=-1)
@@ -159,10 +158,11 @@ def _limits(seqs: list[Sequence], frames: list[int]) -> tuple[np.ndarray, np.nda
     return lo, hi
 
 
-def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None, count: int = 5,
+def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frames: list[int] | None = None,
+                 count: int = 5,
                  dpi: int = 90) -> Path:
     """Write a PNG grid: per sequence, a row of 3-D views and a row of cross-sections through the contact."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib is heavy and only the pictures need it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -187,7 +187,7 @@ def render_strip(seqs: list[Sequence], labels: list[str], out: str | Path, frame
 
 def render_gif(seq: Sequence, out: str | Path, stride: int = 1, fps: int = 10) -> Path:
     """Write an animated GIF of ``seq`` (every ``stride``-th frame)."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib and pillow are heavy and only the pictures need them
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -204,7 +204,8 @@ def render_gif(seq: Sequence, out: str | Path, stride: int = 1, fps: int = 10) -
         ax = fig.add_subplot(1, 1, 1, projection="3d")
         _draw_frame(ax, seq, f, scale, limits, f"t={f}")
         fig.canvas.draw()
-        images.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert("P", palette=Image.ADAPTIVE))
+        images.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+                      .convert("P", palette=Image.ADAPTIVE))
     plt.close(fig)
     with atomic_write(out) as fh:
         images[0].save(fh, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
@@ -213,8 +214,6 @@ def render_gif(seq: Sequence, out: str | Path, stride: int = 1, fps: int = 10) -
 
 def render_file(path: str | Path, out: str | Path, count: int = 5, stride: int = 1) -> Path:
     """Render a sequence/rollout file to ``out`` (.png strip or .gif animation)."""
-    from colgnn_core.io import load_sequence
-
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in (".png", ".gif"):

@@ -15,17 +15,10 @@ import numpy as np
 import torch
 
 from colgnn_core.errors import InputError
-
-
-def _stats(values: list[float] | np.ndarray) -> dict[str, float]:
-    """Median and p95 (ms) of a non-empty list."""
-    v = np.asarray(values, dtype=np.float64)
-    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
-
-
-def rmse_fraction(pred: np.ndarray, truth: np.ndarray, diagonal: float) -> np.ndarray:
-    """Per-frame position RMSE [T] of ``pred`` vs ``truth`` [T,N,3], as a fraction of the bbox ``diagonal``."""
-    return np.sqrt(((pred - truth) ** 2).sum(-1).mean(-1)) / diagonal
+from colgnn_core.evaluation.measure import family_poses, rmse_fraction, stats
+from colgnn_core.runtime.predictor import Predictor
+from colgnn_core.scenes import scene_names
+from colgnn_core.sim.dataset import simulate_sequence
 
 
 def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
@@ -62,13 +55,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
             checkpoint's.
         frames: trajectory length including the rest frame (≥ 3).
         threads: torch threads of the Predictor (the solver uses numpy/scipy's own).
-        compile: torch.compile the network first (see :class:`~colgnn_core.predictor.Predictor`).
+        compile: torch.compile the network first (see :class:`~colgnn_core.runtime.predictor.Predictor`).
     """
-    from colgnn_core.predictor import Predictor
-    from colgnn_core.scenes import scene_names
-    from colgnn_core.sim.dataset import simulate_sequence
-    from colgnn_core.stability import family_poses
-
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
     if frames < 3:
@@ -86,8 +74,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
     timed = timed_rollout(predictor, poses, truth.object_positions[0])
     stages = timed["stages"]
     err = rmse_fraction(timed["positions"], truth.object_positions, scene.bbox_diagonal())
-    total = _stats(stages["total"])
-    ipc = _stats(ipc_ms)
+    total = stats(stages["total"])
+    ipc = stats(ipc_ms)
     return {
         "scene": scene.name,
         "resolution": scene.resolution,
@@ -95,9 +83,9 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "correction": correction,
         "frames": frames,
         "total_ms": total,
-        "graph_ms": _stats(stages["graph"]),
-        "gnn_ms": _stats(stages["gnn"]),
-        "correction_ms": _stats(stages["correction"]),
+        "graph_ms": stats(stages["graph"]),
+        "gnn_ms": stats(stages["gnn"]),
+        "correction_ms": stats(stages["correction"]),
         "ipc_ms": ipc,
         "speedup_vs_ipc": ipc["median"] / total["median"],
         "rollout_rmse": {"step_1": float(err[1]), "step_10": float(err[min(10, len(err) - 1)]),
@@ -120,7 +108,8 @@ def format_bench(r: dict) -> str:
     rows = [("total", r["total_ms"]), ("graph", r["graph_ms"]), ("gnn", r["gnn_ms"]),
             ("correction", r["correction_ms"]), ("IPC solver", r["ipc_ms"])]
     lines = [f"{r['scene']} ({r['resolution']}): {r['vertices']} vertices, {r['edges']} surface edges, "
-             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
+             f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} "
+             f"threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
              f"{'stage':<12}{'median ms':>11}{'p95 ms':>10}"]
     lines += [f"{name:<12}{s['median']:>11.2f}{s['p95']:>10.2f}" for name, s in rows]
     e = r["rollout_rmse"]

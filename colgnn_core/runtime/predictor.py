@@ -23,20 +23,30 @@ corrected one.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, CollisionCorrector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses
-from colgnn_core.learn.graph import lift_to_mesh
+from colgnn_core.learn.core_model import EdgeSet
+from colgnn_core.learn.graph import GraphInputs, lift_to_mesh
+from colgnn_core.learn.model import Frame
+from colgnn_core.runtime.models import model_and_scene, output_limits
+from colgnn_core.runtime.stepper import RawStepper
+from colgnn_core.scenes import load_scene
+from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 
-__all__ = ["Predictor", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS", "RECOMMENDED_REST_RELAXATION"]
+__all__ = ["Predictor", "PredictorState", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS",
+           "RECOMMENDED_REST_RELAXATION"]
 
 DEFAULT_MAX_SUBSTEPS = 16
 RECOMMENDED_REST_RELAXATION = 0.05  # the ROS node's default (deviation decays as 0.975^steps once the tool is away)
@@ -92,11 +102,21 @@ class StepResult:
         return {k: int(getattr(self, k)) for k in COUNT_LABELS}
 
 
+@dataclass(frozen=True)
+class PredictorState:
+    """What the Predictor publishes and counts besides the network's state (``Predictor.net.state``). Both are
+    replaced, never changed in place, by each model step: a failed ``step`` restores them by reference."""
+
+    mesh: np.ndarray           # [N_mesh,3] the published object positions
+    tool_vertices: np.ndarray  # [M,3] the tool at the current pose (world)
+    steps: int = 0             # model steps since reset
+    fallbacks: int = 0         # steps whose correction used the fallback since reset
+    relaxed_steps: int = 0     # model steps relaxed towards rest since reset
+    free_steps: int = 0        # consecutive released model steps (the settle ramp's clock; see Predictor._released)
+
+
 @lru_cache(maxsize=None)
 def _family_limits(scene_name: str, resolution: str, seeds: int = 3, frames: int = 160) -> tuple[float, float]:
-    from colgnn_core.scenes import load_scene
-    from colgnn_core.scenes.trajectories import sample_poses, split_seeds
-
     scene = load_scene(scene_name, resolution)
     fam = scene.family
     trans = EASE_PEAK * float(np.max(fam["speed"])) * float(np.max(fam.get("retract_speed_factor", 1.0)))
@@ -126,9 +146,6 @@ def tool_step_limits(scene, extra: dict | None = None) -> tuple[float, float]:
 @lru_cache(maxsize=1)
 def _libc_malloc_trim():
     """glibc's malloc_trim, or None (another C library)."""
-    import ctypes
-    import ctypes.util
-
     try:
         return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
     except (OSError, AttributeError):
@@ -161,7 +178,7 @@ class Predictor:
         step_limits: (max translation m, max rotation rad) per model step; default from the
             checkpoint / scene family (:func:`tool_step_limits`).
         max_displacement, max_deviation: optional caps on the raw network output (see
-            :class:`colgnn_core.rollout.RawStepper`), applied before the correction.
+            :class:`colgnn_core.runtime.stepper.RawStepper`), applied before the correction.
         compile: run the network through ``torch.compile`` (~1.8x faster GNN on a CPU); it is
             compiled here, before the first step (seconds; cached on disk by torch), and falls back to
             eager with a warning where compiling is impossible. GNN models only.
@@ -180,8 +197,6 @@ class Predictor:
                  threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
                  max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0):
-        from colgnn_core.rollout import RawStepper
-
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
         if not 0.0 <= rest_relaxation < 1.0:
@@ -196,8 +211,6 @@ class Predictor:
         self.template = self.model.template
         self.correction = bool(correction)
         self.rest_relaxation = float(rest_relaxation)
-        self.relaxed_steps = 0  # model steps relaxed towards rest since reset
-        self.free_steps = 0     # consecutive released model steps (the settle ramp's clock; see _released)
         self._rest_tree = None  # k-d tree of the rest graph nodes (built on first need)
         self.max_substeps = int(max_substeps)
         self.threads = torch.get_num_threads()
@@ -205,15 +218,14 @@ class Predictor:
                                                    else (float(step_limits[0]), float(step_limits[1])))
         if not (self.max_translation > 0 and self.max_rotation > 0):
             raise InputError(f"step limits must be > 0, got {self.max_translation} m, {self.max_rotation} rad")
-        self._net = RawStepper(self.model, scene, max_displacement, max_deviation)
+        self.net = RawStepper(self.model, scene, max_displacement, max_deviation)  # the network step and its state
         tpl = self.template
         self.surface_faces = np.asarray(scene.object.faces, dtype=np.int64)
         self.surface_vertex_ids = np.unique(self.surface_faces)
         self.tool_faces = np.asarray(scene.tool.faces, dtype=np.int64)
         self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
                                              max_iterations=max_iterations) if self.correction else None)
-        self.steps = 0          # model steps since reset
-        self.fallbacks = 0      # steps whose correction used the fallback since reset
+        self.state: PredictorState | None = None
         self._since_trim = 0
         self.reset()
         self.compiled = bool(compile) and hasattr(self.model, "compile_network")
@@ -225,12 +237,8 @@ class Predictor:
     def _warm_up_network(self) -> None:
         """Call the network on the rest graph with 0, 1 and 2 world-edge pairs: every shape class the
         compiled network can meet (torch specialises sizes 0 and 1; 2 and up share one kernel)."""
-        from colgnn_core.learn.core_model import EdgeSet
-        from colgnn_core.learn.graph import GraphInputs
-        from colgnn_core.learn.model import Frame
-
-        net = self._net
-        g = self.model.build_graph(Frame(net.x_t, net.x_t, net.tool_t, net.tool_t, net.pose))
+        s = self.net.state
+        g = self.model.build_graph(Frame(s.x_t, s.x_t, s.tool_t, s.tool_t, s.pose))
         n = g.num_object_nodes
         for pairs in (0, 1, 2):
             send = torch.tensor([n] * pairs + [0] * pairs, dtype=torch.int64)
@@ -245,56 +253,66 @@ class Predictor:
         """A Predictor from a checkpoint path, a LoadedCheckpoint, or a scene name (its shipped model).
 
         ``limits='data'`` caps the network output by the training data's extremes
-        (:func:`colgnn_core.rollout.output_limits`) unless ``max_displacement`` / ``max_deviation`` are given;
-        other keyword arguments go to :class:`Predictor` (e.g. ``compile=True``).
+        (:func:`colgnn_core.runtime.models.output_limits`) unless ``max_displacement`` / ``max_deviation`` are
+        given; other keyword arguments go to :class:`Predictor` (e.g. ``compile=True``).
         """
-        from colgnn_core.rollout import load_model, output_limits
-
-        loaded = load_model(checkpoint_or_scene, scene)
-        if scene is None:
-            from colgnn_core.scenes import load_scene
-
-            scene = load_scene(loaded.meta.scene, loaded.meta.resolution)
+        loaded, scene = model_and_scene(checkpoint_or_scene, scene)
         kwargs["max_displacement"], kwargs["max_deviation"] = output_limits(
             loaded, limits, kwargs.get("max_displacement"), kwargs.get("max_deviation"))
         return cls(loaded, scene, correction=correction, max_substeps=max_substeps, threads=threads, **kwargs)
 
     # -- state ----------------------------------------------------------------------------------------------------
     def reset(self, positions: np.ndarray | None = None, tool_pose: np.ndarray | None = None) -> None:
-        """Object at rest (or ``positions`` [N_mesh,3]) and at rest velocity; tool at its rest pose (or ``tool_pose``)."""
+        """Object at rest (or ``positions`` [N_mesh,3]) and at rest velocity; tool at its rest pose (or
+        ``tool_pose``)."""
         n_mesh = self.scene.object.vertices.shape[0]
         x0 = np.asarray(self.scene.object.vertices if positions is None else positions, dtype=np.float64)
         if x0.shape != (n_mesh, 3) or not np.all(np.isfinite(x0)):
             raise InputError(f"positions must be a finite [{n_mesh},3] array, got shape {x0.shape}")
         pose = self.scene.tool_rest_pose if tool_pose is None else tool_pose
         pose = self.scene.check_pose(pose)
-        self._net.reset(x0[self.template.object_nodes], pose)
-        self._mesh = x0.copy()
-        self._tool_np = self.scene.tool.world_vertices(pose)
-        self.steps = 0
-        self.fallbacks = 0
-        self.relaxed_steps = 0
-        self.free_steps = 0
+        self.net.reset(x0[self.template.object_nodes], pose)
+        self.state = PredictorState(mesh=x0.copy(), tool_vertices=self.scene.tool.world_vertices(pose))
+
+    @property
+    def steps(self) -> int:
+        """Model steps since reset."""
+        return self.state.steps
+
+    @property
+    def fallbacks(self) -> int:
+        """Model steps since reset whose correction used the safe fallback."""
+        return self.state.fallbacks
+
+    @property
+    def relaxed_steps(self) -> int:
+        """Model steps since reset relaxed towards the rest shape."""
+        return self.state.relaxed_steps
+
+    @property
+    def free_steps(self) -> int:
+        """Consecutive released model steps (the settle ramp's clock)."""
+        return self.state.free_steps
 
     @property
     def tool_pose(self) -> np.ndarray:
         """[7] the tool pose of the current state."""
-        return self._net.pose.copy()
+        return self.net.state.pose.copy()
 
     @property
     def positions(self) -> np.ndarray:
         """[N_mesh,3] the current published object positions."""
-        return self._mesh.copy()
+        return self.state.mesh.copy()
 
     @property
     def graph_positions(self) -> np.ndarray:
         """[N,3] the current object graph-node positions."""
-        return self._net.x_t.numpy().copy()
+        return self.net.state.x_t.numpy().copy()
 
     # -- stepping -------------------------------------------------------------------------------------------------
     def substeps_for(self, pose: np.ndarray) -> int:
         """Model steps needed to move the tool from the current pose to ``pose`` (validated [7])."""
-        cur = self._net.pose
+        cur = self.net.state.pose
         n_t = float(np.linalg.norm(pose[:3] - cur[:3])) / self.max_translation
         n_r = _rotation_angle(cur[3:], pose[3:]) / self.max_rotation
         # 1e-9: a step exactly at the limit stays one step despite rounding.
@@ -305,7 +323,7 @@ class Predictor:
         pose = self.scene.check_pose(tool_pose)
         n = self.substeps_for(pose)
         if n > self.max_substeps:
-            cur = self._net.pose
+            cur = self.net.state.pose
             raise InputError(
                 f"tool pose jump too large: {np.linalg.norm(pose[:3] - cur[:3]) * 1e3:.1f} mm and "
                 f"{math.degrees(_rotation_angle(cur[3:], pose[3:])):.1f} deg in one step would need {n} model steps "
@@ -318,49 +336,50 @@ class Predictor:
         """Advance to ``tool_pose`` [7] and return the published state (InputError: state unchanged)."""
         t_start = time.perf_counter()
         pose, n = self.check(tool_pose)
-        start = self._net.pose
+        start = self.net.state.pose
         subposes = interpolate_poses(start, pose, np.arange(1, n + 1) / n) if n > 1 else pose[None]
         subposes[-1] = pose
-        res = StepResult(positions=self._mesh, surface_faces=self.surface_faces,
+        res = StepResult(positions=self.state.mesh, surface_faces=self.surface_faces,
                          surface_vertex_ids=self.surface_vertex_ids, tool_vertices=None, tool_faces=self.tool_faces,
                          tool_pose=pose, substeps=n)
         ms = {"graph": 0.0, "gnn": 0.0, "correction": 0.0}
-        net = self._net
-        saved = (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps, self.fallbacks,
-                 self.relaxed_steps, self.free_steps)
+        saved = (self.net.state, self.state)
         try:
             for sp in subposes:
                 self._model_step(sp, res, ms)
         except BaseException:
             # A failure inside a model step (e.g. non-finite network output) leaves the state as it was.
-            (net.x_prev, net.x_t, net.tool_t, net.pose, self._mesh, self._tool_np, self.steps,
-             self.fallbacks, self.relaxed_steps, self.free_steps) = saved
+            self.net.state, self.state = saved
             raise
         t_lift = time.perf_counter()
-        self._mesh = self.lift(self._net.x_t.numpy(), res)
+        self.state = replace(self.state, mesh=self.lift(self.net.state.x_t.numpy(), res))
         ms["graph"] += 1e3 * (time.perf_counter() - t_lift)  # lifting belongs to the graph bookkeeping
-        res.positions = self._mesh
-        res.tool_vertices = self._tool_np
+        res.positions = self.state.mesh
+        res.tool_vertices = self.state.tool_vertices
         ms["total"] = 1e3 * (time.perf_counter() - t_start)
         res.timings_ms = ms
         return res
 
     def _model_step(self, pose_next: np.ndarray, res: StepResult, ms: dict) -> None:
-        net = self._net
+        net = self.net
         tool_next_np = self.scene.tool.world_vertices(pose_next)
         tool_next = torch.from_numpy(tool_next_np)
         x_raw = net.propose(pose_next, tool_next)
         ms["graph"] += net.last_ms["graph"]
         ms["gnn"] += net.last_ms["gnn"]
         released = bool(self.rest_relaxation) and self._released(pose_next, tool_next_np)
-        self.free_steps = self.free_steps + 1 if released else 0
+        st = self.state
+        st = replace(st, free_steps=st.free_steps + 1 if released else 0)
+        self.state = st
         if released:
             x_raw = x_raw + self.relaxation_rate() * (net.rest - x_raw)
-            self.relaxed_steps += 1
+            st = replace(st, relaxed_steps=st.relaxed_steps + 1)
+        fallbacks = st.fallbacks
         if self.corrector is not None:
             t = time.perf_counter()
-            c = self.corrector.correct(net.x_t.numpy(), x_raw.numpy(), net.pose, pose_next,
-                                       net.tool_t.numpy(), tool_next_np)
+            now = net.state
+            c = self.corrector.correct(now.x_t.numpy(), x_raw.numpy(), now.pose, pose_next, now.tool_t.numpy(),
+                                       tool_next_np)
             ms["correction"] += 1e3 * (time.perf_counter() - t)
             res.vertex_face_before += c.vertex_face_before
             res.edge_edge_before += c.edge_edge_before
@@ -370,13 +389,12 @@ class Predictor:
             res.correction_iterations += c.iterations
             if c.fallback:
                 res.fallback = True
-                self.fallbacks += 1
+                fallbacks += 1
             x_next = torch.from_numpy(c.positions)
         else:
             x_next = x_raw
         net.commit(x_next, tool_next, pose_next)
-        self._tool_np = tool_next_np
-        self.steps += 1
+        self.state = replace(st, tool_vertices=tool_next_np, steps=st.steps + 1, fallbacks=fallbacks)
         self._since_trim += 1
         if self._since_trim >= TRIM_EVERY:
             self._since_trim = 0
@@ -386,14 +404,12 @@ class Predictor:
         """Is the object free of the tool this model step? Yes when the graph has no world edge, and also when a
         *static* tool is out of reach of the object's *rest* shape: a distorted learned state can keep brushing
         a tool that has left (world edges flickering on and off), which is not contact an elastic object keeps."""
-        net = self._net
+        net = self.net
         if net.world_edges == 0:
             return True
-        if net.world_edges is None or not np.array_equal(pose_next, net.pose):
+        if net.world_edges is None or not np.array_equal(pose_next, net.state.pose):
             return False
         if self._rest_tree is None:
-            from scipy.spatial import cKDTree
-
             self._rest_tree = cKDTree(net.rest.numpy())
         d, _ = self._rest_tree.query(tool_next, distance_upper_bound=self.template.world_radius)
         return bool(np.isinf(d).all())
@@ -413,7 +429,7 @@ class Predictor:
         ids = self.template.interior_ids
         if self.corrector is not None and ids is not None:
             inner = mesh[ids]
-            moved = self.corrector.clear_points(inner, self._net.pose)
+            moved = self.corrector.clear_points(inner, self.net.state.pose)
             if moved:
                 mesh[ids] = inner
                 if res is not None:
@@ -427,7 +443,7 @@ class Predictor:
 
 
 class PredictorStepper:
-    """Adapter for :func:`colgnn_core.rollout.run_stepper`: records a StepResult summary per frame."""
+    """Adapter for :func:`colgnn_core.runtime.stepper.run_stepper`: records a StepResult summary per frame."""
 
     def __init__(self, predictor: Predictor):
         self.predictor = predictor

@@ -1,0 +1,231 @@
+"""The numba helpers shared by the collision stages: small vector algebra, the coplanarity cubic of the
+non-penetration filter, swept boxes and their sort-and-sweep join, point distances.
+
+Every function here is compiled by numba (``@njit``) or inlined into the kernels that call it
+(``@register_jitable``: plain Python on arrays, tensors or tuples too), so :mod:`.filter`,
+:mod:`.narrow_phase`, :mod:`.broad_phase` and :mod:`.correction` share one implementation of each formula.
+The floating-point reasoning behind the filter's bounds (``ERROR_FACTOR``, ``UNDERFLOW_GUARD``) is in
+:mod:`.filter`'s docstring.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numba.extending import register_jitable
+
+ERROR_FACTOR = 32.0
+UNDERFLOW_GUARD = 2.0**-1000  # absolute slack for subnormal / underflowed products
+UNIT_ROUNDOFF = float(np.finfo(np.float64).eps / 2)
+BRUTE_FORCE_PAIRS = 4096  # box_join compares all pairs directly up to this many
+
+
+# ---------------------------------------------------------------------------------------------- vector algebra
+@register_jitable
+def vec_cross(ax, ay, az, bx, by, bz):
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
+@register_jitable
+def abs_cross(ax, ay, az, bx, by, bz):
+    # Same expression tree as vec_cross on absolute values: bounds its rounding error.
+    return ay * bz + az * by, az * bx + ax * bz, ax * by + ay * bx
+
+
+@register_jitable
+def vec_dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@register_jitable
+def vec_sub(a, b):
+    return a[0] - b[0], a[1] - b[1], a[2] - b[2]
+
+
+@register_jitable
+def vec_add(a, b):
+    return a[0] + b[0], a[1] + b[1], a[2] + b[2]
+
+
+# ---------------------------------------------------------------------------------- the coplanarity cubic
+@register_jitable
+def bernstein_terms(P0, A0, B0, C0, P1, A1, B1, C1):
+    """The one implementation of the coefficients: on [3,K] arrays/tensors (rows indexable) and,
+    compiled by numba, on (x, y, z) float tuples of a single pair."""
+    # Leaves: positions relative to a, at t0 and t1 (one rounding each).
+    d0, e0, g0 = vec_sub(P0, A0), vec_sub(B0, A0), vec_sub(C0, A0)
+    d1, e1, g1 = vec_sub(P1, A1), vec_sub(B1, A1), vec_sub(C1, A1)
+    n0 = vec_cross(e0[0], e0[1], e0[2], g0[0], g0[1], g0[2])
+    n1 = vec_cross(e1[0], e1[1], e1[2], g1[0], g1[1], g1[2])
+    # (v_b - v_a) = (b1 - a1) - (b0 - a0), exactly in reals.
+    ve, vg = vec_sub(e1, e0), vec_sub(g1, g0)
+    w = vec_cross(ve[0], ve[1], ve[2], vg[0], vg[1], vg[2])
+    nh2 = vec_sub(vec_add(n0, n1), w)  # 2 * n-hat (minus sign!)
+    coef = (vec_dot(d0, n0), vec_dot(d0, nh2) + vec_dot(d1, n0), vec_dot(d1, nh2) + vec_dot(d0, n1), vec_dot(d1, n1))
+
+    ad0 = (abs(d0[0]), abs(d0[1]), abs(d0[2]))
+    ae0 = (abs(e0[0]), abs(e0[1]), abs(e0[2]))
+    ag0 = (abs(g0[0]), abs(g0[1]), abs(g0[2]))
+    ad1 = (abs(d1[0]), abs(d1[1]), abs(d1[2]))
+    ae1 = (abs(e1[0]), abs(e1[1]), abs(e1[2]))
+    ag1 = (abs(g1[0]), abs(g1[1]), abs(g1[2]))
+    an0 = abs_cross(ae0[0], ae0[1], ae0[2], ag0[0], ag0[1], ag0[2])
+    an1 = abs_cross(ae1[0], ae1[1], ae1[2], ag1[0], ag1[1], ag1[2])
+    ave, avg = vec_add(ae1, ae0), vec_add(ag1, ag0)
+    aw = abs_cross(ave[0], ave[1], ave[2], avg[0], avg[1], avg[2])
+    anh2 = vec_add(vec_add(an0, an1), aw)
+    mag = (vec_dot(ad0, an0), vec_dot(ad0, anh2) + vec_dot(ad1, an0), vec_dot(ad1, anh2) + vec_dot(ad0, an1),
+           vec_dot(ad1, an1))
+    return coef, mag
+
+
+@register_jitable
+def keep_mask(coef, mag, unit_roundoff):
+    """Arrays, tensors or (numba) scalars alike."""
+    scale = ERROR_FACTOR * unit_roundoff
+    bound = mag[0] * scale + UNDERFLOW_GUARD
+    pos = coef[0] > bound
+    neg = coef[0] < -bound
+    for i in range(1, 4):
+        bound = mag[i] * scale + UNDERFLOW_GUARD
+        pos = pos & (coef[i] > bound)
+        neg = neg & (coef[i] < -bound)
+    # NaN/inf make every comparison False, so such pairs are kept. (x ^ True: "not" for bool
+    # scalars, numpy arrays and torch tensors alike.)
+    return (pos | neg) ^ True
+
+
+@register_jitable
+def quad_points(X0, X1, quads, k):
+    """The 8 (x, y, z) tuples (p, a, b, c at t0, then t1) of quad k."""
+    p, a, b, c = quads[k, 0], quads[k, 1], quads[k, 2], quads[k, 3]
+    return ((X0[p, 0], X0[p, 1], X0[p, 2]), (X0[a, 0], X0[a, 1], X0[a, 2]),
+            (X0[b, 0], X0[b, 1], X0[b, 2]), (X0[c, 0], X0[c, 1], X0[c, 2]),
+            (X1[p, 0], X1[p, 1], X1[p, 2]), (X1[a, 0], X1[a, 1], X1[a, 2]),
+            (X1[b, 0], X1[b, 1], X1[b, 2]), (X1[c, 0], X1[c, 1], X1[c, 2]))
+
+
+# ------------------------------------------------------------------------------ boxes and distances
+@njit(cache=True)
+def box_join(lo_a, hi_a, lo_b, hi_b):
+    """Sort-and-sweep join of two box sets [Ka,3], [Kb,3] -> pairs [K,2].
+
+    Along the axis where the boxes are smallest relative to the spread of their corners,
+    two intervals overlap iff lo_b lies in [lo_a, hi_a] or lo_a lies in (lo_b, hi_b]: both
+    are contiguous runs of the sorted lower corners (the two cases are disjoint).
+    """
+    na, nb = lo_a.shape[0], lo_b.shape[0]
+    out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
+    if na == 0 or nb == 0:
+        return out[:0]
+    n = 0
+    if na * nb <= BRUTE_FORCE_PAIRS:
+        # Small sets: comparing all pairs is cheaper than sorting.
+        for i in range(na):
+            for j in range(nb):
+                if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
+                    out, n = push_pair(out, n, i, j)
+        return out[:n].copy()
+    k, best = 0, -1.0
+    for ax in range(3):
+        size = (hi_a[:, ax] - lo_a[:, ax]).sum() / na + (hi_b[:, ax] - lo_b[:, ax]).sum() / nb
+        spread = max(hi_a[:, ax].max(), hi_b[:, ax].max()) - min(lo_a[:, ax].min(), lo_b[:, ax].min())
+        r = spread / max(size, 1e-300)
+        if r > best:
+            k, best = ax, r
+    oa = np.argsort(lo_a[:, k])
+    ob = np.argsort(lo_b[:, k])
+    sa = lo_a[oa, k]
+    sb = lo_b[ob, k]
+    for i in range(na):
+        j = np.searchsorted(sb, lo_a[i, k])
+        while j < nb and sb[j] <= hi_a[i, k]:
+            jb = ob[j]
+            if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, jb):
+                out, n = push_pair(out, n, i, jb)
+            j += 1
+    for jb in range(nb):
+        i = np.searchsorted(sa, lo_b[jb, k], side="right")
+        while i < na and sa[i] <= hi_b[jb, k]:
+            ia = oa[i]
+            if boxes_overlap(lo_a, hi_a, ia, lo_b, hi_b, jb):
+                out, n = push_pair(out, n, ia, jb)
+            i += 1
+    return out[:n].copy()
+
+
+@register_jitable
+def boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
+    # Branch-free (&, not "and"): the outcomes are unpredictable, mispredictions cost more.
+    return ((lo_a[i, 0] <= hi_b[j, 0]) & (lo_b[j, 0] <= hi_a[i, 0]) & (lo_a[i, 1] <= hi_b[j, 1])
+            & (lo_b[j, 1] <= hi_a[i, 1]) & (lo_a[i, 2] <= hi_b[j, 2]) & (lo_b[j, 2] <= hi_a[i, 2]))
+
+
+@register_jitable
+def push_pair(out, n, i, j):
+    if n == out.shape[0]:
+        grown = np.empty((2 * n, 2), dtype=np.int64)
+        grown[:n] = out
+        out = grown
+    out[n, 0] = i
+    out[n, 1] = j
+    return out, n + 1
+
+
+@njit(cache=True)
+def sphere_bounds(X0, X1, ids, c0, c1, radius):
+    """Distances [K] of points X0[ids], X1[ids] to the bounding spheres at t0 / t1 (centres c0, c1; m)."""
+    K = ids.shape[0]
+    lb0 = np.empty(K)
+    lb1 = np.empty(K)
+    for k in range(K):
+        lb0[k] = point_distance(X0, ids[k], c0) - radius
+        lb1[k] = point_distance(X1, ids[k], c1) - radius
+    return lb0, lb1
+
+
+@register_jitable
+def point_distance(P, k, c):
+    d0, d1, d2 = P[k, 0] - c[0], P[k, 1] - c[1], P[k, 2] - c[2]
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@register_jitable
+def row_distance(X, i, Y, j):
+    d0, d1, d2 = X[i, 0] - Y[j, 0], X[i, 1] - Y[j, 1], X[i, 2] - Y[j, 2]
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(cache=True)
+def longest_edge(X, edges):
+    m = 0.0
+    for e in range(edges.shape[0]):
+        m = max(m, row_distance(X, edges[e, 0], X, edges[e, 1]))
+    return m
+
+
+@register_jitable
+def vertex_boxes(X0, X1, ids):
+    lo = np.empty((len(ids), 3))
+    hi = np.empty((len(ids), 3))
+    for k in range(len(ids)):
+        v = ids[k]
+        for a in range(3):
+            lo[k, a] = min(X0[v, a], X1[v, a])
+            hi[k, a] = max(X0[v, a], X1[v, a])
+    return lo, hi
+
+
+@register_jitable
+def prim_boxes(X0, X1, prims, ids):
+    """Swept boxes [K,3] of primitives ``prims[ids]`` (edges or faces)."""
+    lo = np.full((len(ids), 3), np.inf)
+    hi = np.full((len(ids), 3), -np.inf)
+    for k in range(len(ids)):
+        for i in range(prims.shape[1]):
+            v = prims[ids[k], i]
+            for a in range(3):
+                lo[k, a] = min(lo[k, a], X0[v, a], X1[v, a])
+                hi[k, a] = max(hi[k, a], X0[v, a], X1[v, a])
+    return lo, hi
+

@@ -1,0 +1,69 @@
+"""The shipped models and checkpoint loading for the runtime.
+
+A model is named by a checkpoint path, a :class:`~colgnn_core.learn.checkpoint.LoadedCheckpoint`, or a scene name
+(its shipped model, ``assets/models/<scene>.pt``). ``limits='data'`` caps the network's output by the extremes of
+the training data the checkpoint records (:func:`output_limits`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from colgnn_core.errors import InputError
+from colgnn_core.learn.checkpoint import LoadedCheckpoint
+from colgnn_core.learn.registry import load_checkpoint
+from colgnn_core.scenes import scene_names
+
+MODEL_DIR = Path(__file__).resolve().parents[1] / "assets" / "models"
+DATA_STEP_FACTOR = 2.0       # limits='data': per-step cap = 2 x the largest per-frame displacement in training
+DATA_DEVIATION_FACTOR = 1.5  # ... and distance-from-rest cap = 1.5 x the largest one in training
+
+
+def shipped_checkpoint(scene_name: str) -> Path:
+    """Path of the shipped model for a scene (InputError if there is none)."""
+    if scene_name not in scene_names():
+        raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
+    path = MODEL_DIR / f"{scene_name}.pt"
+    if not path.is_file():
+        raise InputError(f"no shipped model for scene {scene_name!r} ({path}); pass a checkpoint")
+    return path
+
+
+def load_model(checkpoint_or_scene, scene=None) -> LoadedCheckpoint:
+    """A loaded checkpoint from a LoadedCheckpoint, a checkpoint path, or a scene name (its shipped model)."""
+    if isinstance(checkpoint_or_scene, LoadedCheckpoint):
+        return checkpoint_or_scene
+    if isinstance(checkpoint_or_scene, (str, os.PathLike)):
+        text = str(checkpoint_or_scene)
+        if text in scene_names() and not Path(text).exists():
+            return load_checkpoint(shipped_checkpoint(text), scene)
+        return load_checkpoint(text, scene)
+    raise InputError(f"expected a checkpoint path or a scene name, got {type(checkpoint_or_scene).__name__}")
+
+
+def model_and_scene(checkpoint_or_scene, scene=None) -> tuple[LoadedCheckpoint, object]:
+    """(loaded model, its Scene): ``scene`` if given, else the one the checkpoint names, at its resolution."""
+    loaded = load_model(checkpoint_or_scene, scene)
+    return loaded, (scene if scene is not None else loaded.meta.load_scene())
+
+
+def output_limits(loaded: LoadedCheckpoint, limits: str, max_displacement: float | None = None,
+                  max_deviation: float | None = None) -> tuple[float | None, float | None]:
+    """(max displacement per step, max distance from rest) caps in m for the network's output.
+
+    ``limits``: 'none' (only the explicit values) or 'data': ``DATA_STEP_FACTOR`` x the largest per-frame node
+    displacement and ``DATA_DEVIATION_FACTOR`` x the largest node distance from rest in the checkpoint's training
+    data, where no explicit value is given.
+    """
+    if limits not in ("none", "data"):
+        raise InputError(f"limits must be 'none' or 'data', got {limits!r}")
+    if limits == "data":
+        stats = (loaded.extra or {}).get("data_stats")
+        if not stats:
+            raise InputError("this checkpoint records no training-data statistics; pass explicit limits")
+        if max_displacement is None:
+            max_displacement = DATA_STEP_FACTOR * float(stats["max"])
+        if max_deviation is None:
+            max_deviation = DATA_DEVIATION_FACTOR * float(stats["max_deviation"])
+    return max_displacement, max_deviation
