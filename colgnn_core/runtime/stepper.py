@@ -64,7 +64,8 @@ class StepperState:
 class RawStepper:
     """The network alone: x_{t+1} = model(x_t, x_{t-1}, tool at t and t+1), optionally displacement-capped."""
 
-    def __init__(self, model, scene, max_displacement: float | None = None, max_deviation: float | None = None):
+    def __init__(self, model, scene, max_displacement: float | None = None, max_deviation: float | None = None,
+                 rest: np.ndarray | None = None):
         for name, v in (("max_displacement", max_displacement), ("max_deviation", max_deviation)):
             if v is not None and not v > 0:
                 raise InputError(f"{name} must be > 0 (m), got {v}")
@@ -73,7 +74,10 @@ class RawStepper:
         self.template = model.template
         self.max_displacement = max_displacement
         self.max_deviation = max_deviation
-        self.rest = self.template.rest.clone()
+        # The rest the deviation cap (and the Predictor's rest relaxation) refer to: [N,3] graph nodes, default the
+        # template's (the mesh file's); the Predictor passes the settled rest the ground truth starts from.
+        self.rest = (self.template.rest.clone() if rest is None
+                     else torch.from_numpy(np.asarray(rest, dtype=np.float64).copy()))
         self.clamped = 0  # nodes capped in the last step
         self.state: StepperState | None = None
 
