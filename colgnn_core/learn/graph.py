@@ -268,20 +268,21 @@ def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor
     return GraphInputs(node_features, EdgeSet(mesh_feat, s, r), EdgeSet(world_feat, w_send, w_recv), n)
 
 
-def lift_to_mesh(template: GraphTemplate, x_graph: np.ndarray) -> np.ndarray:
+def lift_to_mesh(template: GraphTemplate, x_graph: np.ndarray, rest: np.ndarray | None = None) -> np.ndarray:
     """Object graph-node positions [N,3] -> every mesh vertex [N_mesh,3].
 
     With all vertices in the graph this is a reorder. Surface-only: interior
     vertices get the inverse-distance-weighted rest-frame displacement of their
     ``k`` nearest surface nodes (only interior vertices move this way; they are
-    not part of any contact or output face).
+    not part of any contact or output face). ``rest`` [N_mesh,3]: the rest shape the displacements refer to
+    (default the template's, the mesh file's; the runtime passes the settled rest).
     """
     x_graph = np.asarray(x_graph)
-    rest_all = template.mesh_rest_vertices
+    rest_all = template.mesh_rest_vertices if rest is None else np.asarray(rest)
     out = np.empty((rest_all.shape[0], 3), dtype=x_graph.dtype)
     out[template.object_nodes] = x_graph
     if template.interior_ids is not None:
-        disp = x_graph - template.rest.numpy()
+        disp = x_graph - rest_all[template.object_nodes]
         out[template.interior_ids] = rest_all[template.interior_ids] + np.einsum(
             "ik,ikc->ic", template.interior_weights, disp[template.interior_neighbours])
     return out

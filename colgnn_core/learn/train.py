@@ -250,6 +250,8 @@ def _fresh_model(scene, dataset: FrameDataset, config: TrainConfig | None, steps
     mcfg = ModelConfig.from_scene(scene, **{**cfg.model, "noise_std": float(noise)})
     torch.manual_seed(seed)  # identical initial weights on every rank
     sim = Simulator(template, mcfg)
+    if sim.has_settled_rest:  # the quasi-static output and the rest feature refer to the ground truth's frame 0
+        sim.set_settled_rest(dataset.sequences[0].object_positions[0][template.object_nodes])
     return _Model(cfg, template, sim, *_optimizer(sim, cfg))
 
 

@@ -230,7 +230,7 @@ class Predictor:
         # One rest state: the settled shape the ground truth starts from (start, relaxation and caps refer to it).
         self.rest_mesh = settled_rest(loaded, scene)
         self.net = RawStepper(self.model, scene, max_displacement, max_deviation,  # the network step and its state
-                              rest=self.rest_mesh[tpl.object_nodes])
+                              rest_mesh=self.rest_mesh)
         extra = loaded.extra or {}
         poses = extra.get("domain_tool_positions")
         self._domain_tree = cKDTree(np.asarray(poses, dtype=np.float64)) if poses is not None else None
@@ -458,7 +458,7 @@ class Predictor:
     def lift(self, x_graph: np.ndarray, res: StepResult | None = None) -> np.ndarray:
         """Graph-node positions [N,3] -> every mesh vertex [N_mesh,3] (:func:`lift_to_mesh`); with the correction,
         interior vertices inside the tool at the current pose are moved out (counted in ``res.interior_cleared``)."""
-        mesh = lift_to_mesh(self.template, x_graph)
+        mesh = lift_to_mesh(self.template, x_graph, self.rest_mesh)
         ids = self.template.interior_ids
         if self.corrector is not None and ids is not None:
             inner = mesh[ids]
@@ -487,7 +487,7 @@ class PredictorStepper:
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
         p = self.predictor
         # Interior vertices of a surface-only model are not state: lift them from the nodes.
-        p.reset(lift_to_mesh(p.template, np.asarray(x0_graph, dtype=np.float64)), pose0)
+        p.reset(lift_to_mesh(p.template, np.asarray(x0_graph, dtype=np.float64), p.rest_mesh), pose0)
         self.records = []
 
     def step(self, pose_next: np.ndarray) -> np.ndarray:

@@ -61,6 +61,5 @@ def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *,
         seq = run_stepper(stepper, scene, poses, initial_positions, progress)
         seq.extra.update(stepper.extra())
         return seq
-    stepper = RawStepper(loaded.simulator, scene, max_displacement, max_deviation,
-                         rest=rest[loaded.simulator.template.object_nodes])
+    stepper = RawStepper(loaded.simulator, scene, max_displacement, max_deviation, rest_mesh=rest)
     return run_stepper(stepper, scene, poses, initial_positions, progress)

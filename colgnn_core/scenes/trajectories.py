@@ -206,10 +206,11 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
 
     Kinds, drawn with ``stroke_weights`` (press, drag, plunge): a *press* anywhere on the tool-facing surface; a
     *press-and-drag* across it (``drag`` m, at the same indentation below the local surface); a *plunge* to the
-    deepest family depth at the top speed. Every stroke may be tilted (``tilt_deg``) and turned (``yaw_deg``, about
-    the radial direction from the object's centre when ``yaw_radial``), travels above the object at the retract
-    height before it descends (no sweep through a raised part), and ends with a retract and ``settle`` frames of
-    waiting, so sequences show the object returning to rest.
+    deepest family depth at the top speed. The first stroke aims at the family's target disk (``target_xy``,
+    ``target_jitter``: contact within the first frames), later ones anywhere. Every stroke may be tilted
+    (``tilt_deg``) and turned (``yaw_deg``, about the radial direction from the object's centre when
+    ``yaw_radial``), travels above the object at the retract height before it descends (no sweep through a raised
+    part), and ends with a retract and ``settle`` frames of waiting, so sequences show the object returning to rest.
     """
     fam = scene.family
     weights = np.asarray(fam.get("stroke_weights", [0.5, 0.3, 0.2]), dtype=np.float64)
@@ -225,8 +226,15 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
         radial = np.degrees(np.arctan2(*(xy - centre)[::-1])) if fam.get("yaw_radial", False) else 0.0
         return _orientation(scene, tilt, azimuth, yaw + radial)
 
-    near = path.last[:2] if len(path) > 1 and rng.uniform() < float(fam.get("near_fraction", 0.5)) else None
-    xy, quat, h = _coverage_target(scene, rng, depth, near, orientation)
+    if len(path) == 1:  # the first stroke aims at the scene's target, as the narrow family did: contact early
+        r = float(fam.get("target_jitter", 0.0)) * np.sqrt(rng.uniform())
+        phi = rng.uniform(0, 2 * np.pi)
+        xy = np.asarray(fam["target_xy"], dtype=np.float64) + r * np.array([np.cos(phi), np.sin(phi)])
+        quat = orientation(xy)
+        h = _contact_heights(scene, xy[None], quat, fallback=float(scene.tool_rest_pose[2]) - _clearance(scene))[0]
+    else:
+        near = path.last[:2] if rng.uniform() < float(fam.get("near_fraction", 0.5)) else None
+        xy, quat, h = _coverage_target(scene, rng, depth, near, orientation)
     travel = max(float(path.last[2]), _rest_height(scene, xy))
     if np.linalg.norm(xy - path.last[:2]) > 1e-9:  # out of contact: at the family's top speed
         path.move_to(np.array([path.last[0], path.last[1], travel]), path.last[3:], top)
