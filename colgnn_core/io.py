@@ -4,6 +4,11 @@
   ``object_positions`` [T,N,3] m, ``object_faces`` [F,3], ``tool_positions``
   [T,M,3] m, ``tool_faces`` [G,3], ``tool_poses`` [T,7] (px,py,pz,qx,qy,qz,qw),
   ``dt`` seconds. Extra keys are kept.
+* The motion from frame t-1 to frame t is the straight one (every vertex linear), unless the file records
+  intermediate states for frame t (``subframe_frame`` [K] = t, ``subframe_object_positions`` [K,N,3],
+  ``subframe_tool_positions`` [K,M,3], in order): then it is the piecewise-linear path through them.
+  :meth:`Sequence.motion` gives the states of either. The ground-truth solver records them where its straight
+  frame-to-frame motion is not collision-free; the Predictor never does (its straight motion is).
 * Poses ``.csv`` with the header ``t,px,py,pz,qx,qy,qz,qw``.
 
 Every writer goes through :func:`atomic_write`, so a crash never leaves a
@@ -30,6 +35,7 @@ POSE_COLUMNS = ("t", "px", "py", "pz", "qx", "qy", "qz", "qw")
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 SEQUENCE_KEYS = ("object_positions", "object_faces", "tool_positions", "tool_faces", "tool_poses", "dt")
+SUBFRAME_KEYS = ("subframe_frame", "subframe_object_positions", "subframe_tool_positions")
 
 
 @contextlib.contextmanager
@@ -87,6 +93,18 @@ class Sequence:
     def frames(self) -> int:
         return int(self.object_positions.shape[0])
 
+    def motion(self, t: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The states (object [N,3], tool [M,3]) the motion from frame t-1 to frame t passes through, both frames
+        included: two for a straight motion, more where intermediate states are recorded (module docstring)."""
+        if not 1 <= t < self.frames:
+            raise IndexError(f"frame {t} has no motion into it (frames 1..{self.frames - 1})")
+        states = [(self.object_positions[t - 1], self.tool_positions[t - 1])]
+        if "subframe_frame" in self.extra:
+            for k in np.flatnonzero(np.asarray(self.extra["subframe_frame"]) == t):
+                states.append((self.extra["subframe_object_positions"][k], self.extra["subframe_tool_positions"][k]))
+        states.append((self.object_positions[t], self.tool_positions[t]))
+        return states
+
     def validate(self, source: str = "sequence") -> "Sequence":
         """Check shapes, index ranges and finiteness; raise :class:`InputError`."""
         op, tp = self.object_positions, self.tool_positions
@@ -105,6 +123,20 @@ class Sequence:
         for name in ("object_positions", "tool_positions", "tool_poses"):
             if not np.all(np.isfinite(getattr(self, name))):
                 raise InputError(f"{source}: {name} contains NaN or inf")
+        present = [k for k in SUBFRAME_KEYS if k in self.extra]
+        if present:
+            if len(present) != len(SUBFRAME_KEYS):
+                raise InputError(f"{source}: {', '.join(present)} without the other subframe keys")
+            sf = np.asarray(self.extra["subframe_frame"])
+            so = np.asarray(self.extra["subframe_object_positions"])
+            st = np.asarray(self.extra["subframe_tool_positions"])
+            K = len(sf)
+            if (sf.ndim != 1 or so.shape != (K, *op.shape[1:]) or st.shape != (K, *tp.shape[1:])
+                    or (K and (sf.min() < 1 or sf.max() >= op.shape[0] or np.any(np.diff(sf) < 0)))):
+                raise InputError(f"{source}: subframe keys must be [K] frame ids in 1..T-1 (non-decreasing), "
+                                 f"[K,N,3] and [K,M,3]")
+            if not (np.all(np.isfinite(so)) and np.all(np.isfinite(st))):
+                raise InputError(f"{source}: subframe positions contain NaN or inf")
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise InputError(f"{source}: dt must be a positive number, got {self.dt}")
         return self

@@ -28,6 +28,10 @@ where it can matter. A vertex with s0 + s1 - Lmax0 - Lmax1 - dmax > D + 2m
 motion) rules out every edge and face it belongs to, so only the edges and faces
 around the remaining vertices get the exact test.
 
+With a clearance c (``step_candidates(..., clearance=c)``: pairs that may come
+closer than c during the step, for :mod:`.clearance`) the same bound reads
+s0 + s1 - d - D - 2m > 2c, and the object's swept boxes grow by c.
+
 The remaining primitives are paired by overlapping swept boxes (box of the
 primitive's vertices at t0 and t1). Tool primitives that cannot reach the box of
 the remaining object primitives are dropped first. The box join sorts both sets
@@ -341,14 +345,17 @@ def check_positions(X, n: int, name: str) -> np.ndarray:
 
 def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool_t1, tool_surface: Surface, *,
                     tool_bound: ToolSDFBound | None = None, tool_pose_t0=None, tool_pose_t1=None,
-                    check: bool = True, cache: dict | None = None) -> CandidatePairs:
+                    check: bool = True, cache: dict | None = None, clearance: float = 0.0) -> CandidatePairs:
     """Candidate pairs for the linear motion t0 -> t1 of object [N,3] and tool [M,3] positions (m).
 
     With ``tool_bound`` and both tool poses, object primitives are first culled with the
     tool's analytic SDF. ``check=False`` skips input validation (hot path, trusted arrays:
     then the tool positions must be ``tool.world_vertices(pose)`` at both ends);
     ``cache`` is a dict the caller keeps across steps of the same object (edge-length bounds).
+    ``clearance`` (m): every pair that may come closer than this during the step (default: that may touch).
     """
+    if not clearance >= 0:
+        raise InputError(f"clearance must be >= 0 (m), got {clearance}")
     if check:
         object_t0 = check_positions(object_t0, object_surface.n_vertices, "object_t0")
         object_t1 = check_positions(object_t1, object_surface.n_vertices, "object_t1")
@@ -366,8 +373,9 @@ def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool
             if dev > 1e-3 * max(tool_bound.radius, 1e-9):
                 raise InputError(f"tool positions differ from the tool mesh at the given poses by {dev:.3g} m")
             bound = tool_bound.widened(2.0 * dev)
+        # The clearance enters the SDF bound like extra tool motion: s0 + s1 - d - (D + 2c) - 2m > 0.
         near_v, near_e, near_f = sdf_near_primitives(X0, X1, object_surface, bound, tool_pose_t0, tool_pose_t1,
-                                                     D, cache)
+                                                     D + 2.0 * clearance, cache)
     else:
         near_v = object_surface.vertices
         near_e = np.arange(len(object_surface.edges))
@@ -375,13 +383,14 @@ def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool
     if len(near_v) + len(near_e) + len(near_f) == 0:
         return CandidatePairs()
     vf, fv, ee = _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, object_surface.faces,
-                                  object_surface.edges, tool_surface.faces, tool_surface.edges)
+                                  object_surface.edges, tool_surface.faces, tool_surface.edges, float(clearance))
     return CandidatePairs(vf=vf, fv=fv, ee=ee)
 
 
 @njit(cache=True)
-def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_faces, tool_edges):
-    """(vf, fv, ee) pairs [K,2] whose swept boxes (box of the primitive's vertices at t0 and t1) overlap.
+def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_faces, tool_edges, grow):
+    """(vf, fv, ee) pairs [K,2] whose swept boxes (box of the primitive's vertices at t0 and t1; the object's
+    grown by ``grow`` m) overlap.
 
     Region R: box of every near object primitive. Tool primitives whose box misses R, and
     tool vertices outside it, are dropped before the join.
@@ -394,6 +403,8 @@ def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_
     for lo, hi in ((vlo, vhi), (elo, ehi), (flo, fhi)):
         for k in range(lo.shape[0]):
             for a in range(3):
+                lo[k, a] -= grow
+                hi[k, a] += grow
                 r_lo[a] = min(r_lo[a], lo[k, a])
                 r_hi[a] = max(r_hi[a], hi[k, a])
     # Per tool vertex, bit 2a: its swept box is below R on axis a, bit 2a+1: above. A tool

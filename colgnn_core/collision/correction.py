@@ -3,9 +3,13 @@
 Input: the previous *safe* object surface positions ``x0`` (no contact with the tool
 at pose t), the network's proposal ``x1`` (any values, finite), and the tool poses
 at t and t+1. Both object and tool move linearly (vertex by vertex) over the step,
-the motion ipctk's CCD checks. Output: positions ``x1'`` such that the motion
-``x0 -> x1'`` against ``tool(t) -> tool(t+1)`` has no contact, hence (``x0`` being
-intersection-free and both surfaces closed) no intersection at t+1 either.
+the motion ipctk's CCD checks. Output: positions ``x1'`` such that, over the motion
+``x0 -> x1'`` against ``tool(t) -> tool(t+1)``, every object-surface/tool primitive pair
+stays farther apart than min(CLEARANCE, CLEARANCE_RATIO x its distance at t)
+(:mod:`colgnn_core.collision.clearance`: 0.18 mm and 0.5), hence no contact, no
+intersection at t+1 (``x0`` being intersection-free and both surfaces closed), and no
+"collision" for ipctk's ``is_step_collision_free`` with its default line-search
+clearance min(0.2 d0, 1e-4 m) either. ``clearance=False`` asks for no contact only.
 
 Algorithm (all vectorised, numpy float64):
 
@@ -31,9 +35,15 @@ closer than about 1e-4 m as colliding, so the published state keeps a 2e-4 m cle
 4. **Keep clear** at t+1: object edges / faces closer than ``TRIGGER x margin`` to a tool
    edge / vertex (box join + exact segment and point-triangle distances) are pushed out
    along the tool's SDF gradient at their closest point, barycentric-weighted.
-5. Repeat 1-4 until the detection is clean and nothing is closer than ``TRIGGER x margin``,
-   at most ``max_iterations`` times.
-6. **Fallback** when the budget runs out: the contact region moves rigidly with the
+5. **Clearance over the step**: once 1-4 leave nothing to do, the additive CCD of
+   :class:`~colgnn_core.collision.clearance.StepClearance` looks for pairs that come
+   closer than the clearance *during* the step (a surface sliding along a curved tool:
+   both ends at the margin, the chord between them nearer). Each one moves its object
+   primitive at t+1 away from the tool primitive along their separation at the time found,
+   t*, by (margin - d*) / t*, barycentric-weighted like 3.
+6. Repeat 1-5 until the detection is clean, nothing is closer than ``TRIGGER x margin``
+   and the clearance holds, at most ``max_iterations`` times.
+7. **Fallback** when the budget runs out: the contact region moves rigidly with the
    tool from the previous safe state, the rest keeps the corrected proposal. This is
    provably safe (below) and counted.
 
@@ -55,6 +65,14 @@ without a certificate join the region, which grows until every triangle is cover
 (in the limit the whole object moves with the tool: safe by the affine argument).
 Edges and vertices belong to triangles, so all primitive pairs are covered.
 
+The clearance survives the fallback. The certificate with ``2 c`` more on the right,
+``s0 + s1 - d - D - 2m > 2c``, keeps every point of the triangle farther than c from the
+tool mesh over the step (c = CLEARANCE). For a pair inside the region the separation
+vector moves by the same affine map, y(s) - z(s) = [(1-s) I + s R] (y0 - z0), whose
+smallest singular value is cos(theta/2) for a rotation by theta: the distance stays at
+least cos(theta/2) d0 >= CLEARANCE_RATIO d0 for theta <= 2 arccos(CLEARANCE_RATIO) = 120
+degrees (the Predictor refuses larger turns in one call).
+
 Locality: only vertices the projection, a crossing pair or the fallback region touch
 are written; every other entry of the output is the input array's value, bit for bit.
 """
@@ -67,16 +85,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from numba.extending import register_jitable
 
 from colgnn_core.collision.broad_phase import Surface, ToolSDFBound
-from colgnn_core.collision.kernels import (box_join, longest_edge, prim_boxes, row_distance, sphere_bounds, vec_dot,
-                                           vec_sub, vertex_boxes)
+from colgnn_core.collision.clearance import CLEARANCE_RATIO, StepClearance, warm_up_clearance
+from colgnn_core.collision.kernels import (barycentric_clamped, box_join, longest_edge, point_triangle, prim_boxes,
+                                           row_distance, row3, segment_distance, segment_params, sphere_bounds,
+                                           vertex_boxes)
 from colgnn_core.collision.pipeline import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 
-__all__ = ["CorrectionResult", "CollisionCorrector", "rigid_step", "certify_triangles"]
+__all__ = ["CorrectionResult", "CollisionCorrector", "rigid_step", "certify_triangles", "MAX_ROTATION"]
 
 DEFAULT_MARGIN_FRACTION = 0.5  # safety margin = this x the scene's dhat ...
 # ... but at least this (m). ipctk's Tight-Inclusion CCD (the test oracle) reports a pair as colliding when it comes
@@ -85,6 +104,8 @@ DEFAULT_MARGIN_FRACTION = 0.5  # safety margin = this x the scene's dhat ...
 MIN_MARGIN = 2.5e-4
 TRIGGER = 0.8                  # a vertex / pair closer than TRIGGER x margin at t+1 is pushed back to the margin
 DEFAULT_MAX_ITERATIONS = 12  # knife_torus ci, 300 random steps: 49 fallback steps with 6, 0 with 12
+MAX_ROTATION = 2.0 * math.acos(CLEARANCE_RATIO)  # rad: the largest tool turn in one step the clearance proof covers
+MIN_PUSH_TIME = 0.05  # a clearance push at t+1 is (margin - d*) / max(t*, this): bounded for an early t*
 
 
 @dataclass
@@ -96,7 +117,8 @@ class CorrectionResult:
     tool-vertex/object-face); *_after: crossings the fast check finds in the output;
     penetrating_after: surface vertices with tool SDF < 0 in the output; iterations: detect
     passes used; fallback: the safe fallback was used; region: vertices moved rigidly by the
-    fallback; moved: vertices whose position changed; timings_ms: detect, resolve, fallback, total.
+    fallback; moved: vertices whose position changed; clearance_pairs: pairs found closer than the
+    clearance during the step (summed over passes); timings_ms: detect, resolve, clearance, fallback, total.
     """
 
     positions: np.ndarray
@@ -109,6 +131,7 @@ class CorrectionResult:
     fallback: bool = False
     region: int = 0
     moved: int = 0
+    clearance_pairs: int = 0
     timings_ms: dict = field(default_factory=dict)
 
 
@@ -121,8 +144,9 @@ def rigid_step(pose0: np.ndarray, pose1: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def certify_triangles(faces: np.ndarray, x0: np.ndarray, x1: np.ndarray, s0: np.ndarray, s1: np.ndarray,
-                      tool_motion: float, margin: float) -> np.ndarray:
-    """Bool [F]: triangles proved contact-free over the step by the SDF bound (module docstring).
+                      tool_motion: float, margin: float, clearance: float = 0.0) -> np.ndarray:
+    """Bool [F]: triangles proved to stay farther than ``clearance`` (m; 0: contact-free) from the tool mesh over
+    the step by the SDF bound (module docstring).
 
     faces [F,3]; x0, x1 [N,3] positions at both ends; s0, s1 [N] analytic tool SDF of those
     positions (m); tool_motion: largest tool vertex motion D (m); margin: tessellation bound m.
@@ -135,7 +159,7 @@ def certify_triangles(faces: np.ndarray, x0: np.ndarray, x1: np.ndarray, s0: np.
         out.append(np.maximum(sv.max(axis=1) - L, sv.min(axis=1) - L / np.sqrt(3.0)))
     d = np.sqrt(((x1 - x0) ** 2).sum(1))[faces].max(axis=1)
     # 1e-12 relative slack absorbs rounding in the sums above (all terms are O(1e-1) m or less).
-    return out[0] + out[1] - d - tool_motion - 2.0 * margin > 1e-12
+    return out[0] + out[1] - d - tool_motion - 2.0 * margin - 2.0 * clearance > 1e-12
 
 
 class CollisionCorrector:
@@ -174,6 +198,7 @@ class CollisionCorrector:
         # The tool lies in this ball about its frame origin: the analytic shapes are extreme at mesh vertices
         # (rims, corners); the slack covers rounding.
         self.tool_radius = float(tool.bounding_radius()) * (1 + 1e-6) + self.mesh_margin + 1e-9
+        self.clearance = StepClearance(self.surface, self.tool_surface, bound)
         self.fallbacks = 0                           # running count over this corrector's life
         self._extra_v: list = []                     # proximity pushes of the current pass
         self._extra_d: list = []
@@ -358,12 +383,72 @@ class CollisionCorrector:
         acc = np.stack([np.bincount(inv, weights=disp[:, c], minlength=len(uniq)) for c in range(3)], axis=1)
         return uniq, acc / cnt[:, None]
 
+    def _clearance_pushes(self, cl, x0, x1, T0, T1) -> tuple[np.ndarray, np.ndarray]:
+        """Averaged displacements at t+1 (vertex ids [K], [K,3]) for the pairs of ``cl`` (a ClearanceResult) that
+        come closer than the clearance mid-step: at the time t* found, the object primitive moves away from the tool
+        primitive along their separation by (margin - d*) / t* at t+1, i.e. by margin - d* at t*; minimal-norm
+        barycentric weights as for crossings."""
+        F, E = self.surface.faces, self.surface.edges
+        G, H = self.tool_surface.faces, self.tool_surface.edges
+        vids, disps = [], []
+
+        def at(A0, A1, t):
+            return A0 + t[:, None] * (A1 - A0)
+
+        def unit(v):
+            return v / np.maximum(np.sqrt((v * v).sum(1)), 1e-300)[:, None]
+
+        for kind in ("vf", "fv", "ee"):
+            pairs = getattr(cl, kind)
+            if len(pairs) == 0:
+                continue
+            t = cl.t[kind]
+            amount = (self.margin - cl.d[kind]) / np.maximum(t, MIN_PUSH_TIME)
+            if kind == "vf":  # object vertex vs tool face
+                i, g = pairs[:, 0], G[pairs[:, 1]]
+                p = at(x0[i], x1[i], t)
+                a, b, c = (at(T0[g[:, k]], T1[g[:, k]], t) for k in range(3))
+                w = _closest_barycentric(p, a, b, c)
+                n = unit(p - (w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c))
+                vids.append(i)
+                disps.append(amount[:, None] * n)
+                continue
+            if kind == "fv":  # tool vertex vs object face
+                j, f = pairs[:, 0], F[pairs[:, 1]]
+                p = at(T0[j], T1[j], t)
+                a, b, c = (at(x0[f[:, k]], x1[f[:, k]], t) for k in range(3))
+                w = _closest_barycentric(p, a, b, c)
+                n = unit(w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c - p)
+                ids = f
+            else:  # object edge vs tool edge
+                e, h = E[pairs[:, 0]], H[pairs[:, 1]]
+                u, v = at(x0[e[:, 0]], x1[e[:, 0]], t), at(x0[e[:, 1]], x1[e[:, 1]], t)
+                k_, l_ = at(T0[h[:, 0]], T1[h[:, 0]], t), at(T0[h[:, 1]], T1[h[:, 1]], t)
+                alpha, beta = _segment_params(u, v, k_, l_)
+                n = unit(u + alpha[:, None] * (v - u) - (k_ + beta[:, None] * (l_ - k_)))
+                w = np.stack([1.0 - alpha, alpha], axis=1)
+                ids = e
+            scale = amount / (w * w).sum(1)
+            for k in range(w.shape[1]):
+                vids.append(ids[:, k])
+                disps.append((scale * w[:, k])[:, None] * n)
+        if not vids:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        vid, disp = np.concatenate(vids), np.concatenate(disps)
+        uniq, inv = np.unique(vid, return_inverse=True)
+        cnt = np.bincount(inv, minlength=len(uniq)).astype(np.float64)
+        acc = np.stack([np.bincount(inv, weights=disp[:, c], minlength=len(uniq)) for c in range(3)], axis=1)
+        return uniq, acc / cnt[:, None]
+
     # -- the correction -------------------------------------------------------------------------------------------
     def correct(self, x0: np.ndarray, x1: np.ndarray, pose0: np.ndarray, pose1: np.ndarray,
-                tool0: np.ndarray | None = None, tool1: np.ndarray | None = None) -> CorrectionResult:
+                tool0: np.ndarray | None = None, tool1: np.ndarray | None = None, *, clearance: bool = True
+                ) -> CorrectionResult:
         """Corrected positions for the step ``x0 -> x1`` ([N,3] m, ``x0`` safe) with the tool ``pose0 -> pose1``.
 
         ``tool0``/``tool1`` [M,3] may pass ``tool.world_vertices(pose)`` when the caller has them.
+        ``clearance``: keep the clearance over the step (module docstring); False: only no contact (the
+        Predictor's inner substeps, whose motion nobody sees).
         """
         t_start = time.perf_counter()
         x0 = np.asarray(x0, dtype=np.float64)
@@ -376,9 +461,13 @@ class CollisionCorrector:
         pose1 = np.asarray(pose1, dtype=np.float64)
         T0 = self.tool.world_vertices(pose0) if tool0 is None else np.asarray(tool0, dtype=np.float64)
         T1 = self.tool.world_vertices(pose1) if tool1 is None else np.asarray(tool1, dtype=np.float64)
+        turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(pose0[3:], pose1[3:])))))
+        if clearance and turn > MAX_ROTATION:
+            raise InputError(f"the tool turns by {math.degrees(turn):.1f} deg in one step; the clearance guarantee "
+                             f"covers up to {math.degrees(MAX_ROTATION):.0f} deg")
         raw = x1.copy()
         out = CorrectionResult(positions=x1)
-        t_detect = t_resolve = 0.0
+        t_detect = t_resolve = t_clear = 0.0
         clean = False
         for it in range(self.max_iterations + 1):
             t = time.perf_counter()
@@ -396,6 +485,10 @@ class CollisionCorrector:
                 d = self._surface_sdf(x1, pose1, self.mesh_margin)
                 clean = n_hits == 0 and not np.any(d < self.mesh_margin)
                 t_resolve += time.perf_counter() - t
+                if clean and clearance:
+                    t = time.perf_counter()
+                    clean = self.clearance.check(x0, x1, T0, T1, pose0, pose1).violations == 0
+                    t_clear += time.perf_counter() - t
                 break
             lmax = longest_edge(x1, self.surface.edges)  # once per pass: SDF reach and the kernel
             sdf = self._surface_sdf(x1, pose1, self._proximity_level + lmax)
@@ -406,14 +499,27 @@ class CollisionCorrector:
             pushed = self._project(x1, pose1, None if len(vid) or n_close else sdf)
             t_resolve += time.perf_counter() - t
             if n_hits == 0 and pushed == 0 and n_close == 0:
-                clean = True
-                break
-        out.timings_ms = {"detect": 1e3 * t_detect, "resolve": 1e3 * t_resolve, "fallback": 0.0}
+                if not clearance:
+                    clean = True
+                    break
+                t = time.perf_counter()
+                cl = self.clearance.check(x0, x1, T0, T1, pose0, pose1)
+                if cl.violations == 0:
+                    t_clear += time.perf_counter() - t
+                    clean = True
+                    break
+                out.clearance_pairs += cl.violations
+                vid, disp = self._clearance_pushes(cl, x0, x1, T0, T1)
+                x1[vid] += disp
+                t_clear += time.perf_counter() - t
+        out.timings_ms = {"detect": 1e3 * t_detect, "resolve": 1e3 * t_resolve, "clearance": 1e3 * t_clear,
+                          "fallback": 0.0}
         if clean:
             out.vertex_face_after = out.edge_edge_after = 0
         else:
             t = time.perf_counter()
-            out.region = self._fallback(x0, x1, pose0, pose1, T0, T1)
+            out.region = self._fallback(x0, x1, pose0, pose1, T0, T1,
+                                        self.clearance.clearance if clearance else 0.0)
             out.fallback = True
             self.fallbacks += 1
             res = self.detector.detect(x0, x1, T0, T1, pose0, pose1, check=False)
@@ -425,8 +531,9 @@ class CollisionCorrector:
         out.timings_ms["total"] = 1e3 * (time.perf_counter() - t_start)
         return out
 
-    def _fallback(self, x0, x1, pose0, pose1, T0, T1) -> int:
-        """Move the uncertified region rigidly with the tool from ``x0`` (in place on ``x1``). Returns its size."""
+    def _fallback(self, x0, x1, pose0, pose1, T0, T1, clearance: float = 0.0) -> int:
+        """Move the region not certified to keep ``clearance`` (m) rigidly with the tool from ``x0`` (in place on
+        ``x1``). Returns its size."""
         R, p = rigid_step(pose0, pose1)
         D = float(np.sqrt(((T1 - T0) ** 2).sum(1)).max())
         S = self.surface_ids
@@ -439,7 +546,7 @@ class CollisionCorrector:
             cand = np.where(in_region[:, None], rigid, x1)
             s1 = np.full(self.n, np.inf)
             s1[S] = self.tool.sdf(cand[S], pose1)
-            ok = certify_triangles(F, x0, cand, s0, s1, D, self.mesh_margin)
+            ok = certify_triangles(F, x0, cand, s0, s1, D, self.mesh_margin, clearance)
             ok |= in_region[F].all(axis=1)
             if ok.all():
                 break
@@ -448,115 +555,12 @@ class CollisionCorrector:
         return int(in_region.sum())
 
 
-@register_jitable
-def _pt(X, i):
-    return X[i, 0], X[i, 1], X[i, 2]
-
-
-@register_jitable
-def _lerp(a, b, t):
-    return a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])
-
-
-@register_jitable
-def _clip01(x):
-    return min(max(x, 0.0), 1.0)
-
-
-@register_jitable
-def _seg_params(u, v, k, l):
-    """(alpha on u-v, beta on k-l) in [0,1] of (approximately) closest points of two segments."""
-    d1, d2, r = vec_sub(v, u), vec_sub(l, k), vec_sub(u, k)
-    a, e, f = vec_dot(d1, d1), vec_dot(d2, d2), vec_dot(d2, r)
-    b, c = vec_dot(d1, d2), vec_dot(d1, r)
-    den = a * e - b * b
-    s = (b * f - c * e) / den if den > 1e-300 else 0.5
-    s = 0.5 if math.isnan(s) else _clip01(s)
-    t = (b * s + f) / e if e > 1e-300 else 0.5
-    t = 0.5 if math.isnan(t) else _clip01(t)
-    s = (b * t - c) / a if a > 1e-300 else 0.5
-    s = 0.5 if math.isnan(s) else _clip01(s)
-    return s, t
-
-
-@register_jitable
-def _pt_seg_dist(p, a, b):
-    ab = vec_sub(b, a)
-    t = _clip01(vec_dot(vec_sub(p, a), ab) / max(vec_dot(ab, ab), 1e-300))
-    d = vec_sub(p, _lerp(a, b, t))
-    return math.sqrt(vec_dot(d, d))
-
-
-@register_jitable
-def _seg_dist(u, v, k, l):
-    """(distance, alpha) of two segments: closest points, with the end-point distances as a safeguard."""
-    alpha, beta = _seg_params(u, v, k, l)
-    d = vec_sub(_lerp(u, v, alpha), _lerp(k, l, beta))
-    dist = min(math.sqrt(vec_dot(d, d)), _pt_seg_dist(u, k, l), _pt_seg_dist(v, k, l), _pt_seg_dist(k, u, v),
-               _pt_seg_dist(l, u, v))
-    return dist, alpha
-
-
-@register_jitable
-def _pt_tri(p, a, b, c):
-    """(distance, w0, w1, w2): exact point-triangle distance and the barycentric weights of the closest
-    point (candidates: the clamped projection and the nearest point of each edge; the nearest wins)."""
-    e0, e1 = vec_sub(b, a), vec_sub(c, a)
-    n = (e0[1] * e1[2] - e0[2] * e1[1], e0[2] * e1[0] - e0[0] * e1[2], e0[0] * e1[1] - e0[1] * e1[0])
-    nn = math.sqrt(vec_dot(n, n))
-    dist = min(_pt_seg_dist(p, a, b), _pt_seg_dist(p, b, c), _pt_seg_dist(p, c, a))
-    if nn > 0:
-        inside = True
-        for x, y in ((a, b), (b, c), (c, a)):
-            xy, xp = vec_sub(y, x), vec_sub(p, x)
-            cr = (xy[1] * xp[2] - xy[2] * xp[1], xy[2] * xp[0] - xy[0] * xp[2], xy[0] * xp[1] - xy[1] * xp[0])
-            inside = inside and vec_dot(cr, n) >= 0
-        if inside:
-            dist = min(dist, abs(vec_dot(vec_sub(p, a), n)) / nn)
-    # weights of the closest point
-    w = _bary_clamped(p, a, b, c)
-    q = (w[0] * a[0] + w[1] * b[0] + w[2] * c[0], w[0] * a[1] + w[1] * b[1] + w[2] * c[1],
-         w[0] * a[2] + w[1] * b[2] + w[2] * c[2])
-    best = vec_dot(vec_sub(p, q), vec_sub(p, q))
-    for i in range(3):
-        x, y = (a, b, c)[i], (a, b, c)[(i + 1) % 3]
-        xy = vec_sub(y, x)
-        t = _clip01(vec_dot(vec_sub(p, x), xy) / max(vec_dot(xy, xy), 1e-300))
-        d = vec_sub(p, _lerp(x, y, t))
-        dd = vec_dot(d, d)
-        if dd < best:
-            best = dd
-            ww = [0.0, 0.0, 0.0]
-            ww[i] = 1.0 - t
-            ww[(i + 1) % 3] = t
-            w = (ww[0], ww[1], ww[2])
-    return dist, w[0], w[1], w[2]
-
-
-@register_jitable
-def _bary_clamped(p, a, b, c):
-    """Barycentric weights of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
-    e0, e1, e2 = vec_sub(b, a), vec_sub(c, a), vec_sub(p, a)
-    d00, d01, d11 = vec_dot(e0, e0), vec_dot(e0, e1), vec_dot(e1, e1)
-    d20, d21 = vec_dot(e2, e0), vec_dot(e2, e1)
-    den = d00 * d11 - d01 * d01
-    v = (d11 * d20 - d01 * d21) / den if den != 0 else np.nan
-    w = (d00 * d21 - d01 * d20) / den if den != 0 else np.nan
-    if not (math.isfinite(v) and math.isfinite(w)):
-        v = w = 1.0 / 3.0
-    b0, b1, b2 = max(1.0 - v - w, 0.0), max(v, 0.0), max(w, 0.0)
-    s = b0 + b1 + b2
-    if not s > 0:
-        return 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0
-    return b0 / s, b1 / s, b2 / s
-
-
 @njit(cache=True)
 def _segment_params_kernel(u, v, k, l):
     K = u.shape[0]
     alpha, beta = np.empty(K), np.empty(K)
     for i in range(K):
-        alpha[i], beta[i] = _seg_params(_pt(u, i), _pt(v, i), _pt(k, i), _pt(l, i))
+        alpha[i], beta[i] = segment_params(row3(u, i), row3(v, i), row3(k, i), row3(l, i))
     return alpha, beta
 
 
@@ -564,7 +568,7 @@ def _segment_params_kernel(u, v, k, l):
 def _segment_distance_kernel(u, v, k, l):
     out = np.empty(u.shape[0])
     for i in range(u.shape[0]):
-        out[i] = _seg_dist(_pt(u, i), _pt(v, i), _pt(k, i), _pt(l, i))[0]
+        out[i] = segment_distance(row3(u, i), row3(v, i), row3(k, i), row3(l, i))[0]
     return out
 
 
@@ -573,7 +577,7 @@ def _point_triangle_kernel(p, a, b, c):
     dist = np.empty(p.shape[0])
     w = np.empty((p.shape[0], 3))
     for i in range(p.shape[0]):
-        dist[i], w[i, 0], w[i, 1], w[i, 2] = _pt_tri(_pt(p, i), _pt(a, i), _pt(b, i), _pt(c, i))
+        dist[i], w[i, 0], w[i, 1], w[i, 2] = point_triangle(row3(p, i), row3(a, i), row3(b, i), row3(c, i))
     return dist, w
 
 
@@ -581,7 +585,7 @@ def _point_triangle_kernel(p, a, b, c):
 def _barycentric_clamped_kernel(p, a, b, c):
     w = np.empty((p.shape[0], 3))
     for i in range(p.shape[0]):
-        w[i, 0], w[i, 1], w[i, 2] = _bary_clamped(_pt(p, i), _pt(a, i), _pt(b, i), _pt(c, i))
+        w[i, 0], w[i, 1], w[i, 2] = barycentric_clamped(row3(p, i), row3(a, i), row3(b, i), row3(c, i))
     return w
 
 
@@ -602,6 +606,11 @@ def _segment_distance(u, v, k, l) -> np.ndarray:
 def _point_triangle_distance(p, a, b, c) -> np.ndarray:
     """Exact point-triangle distances [K]: plane distance when the projection is inside, else the nearest edge."""
     return _point_triangle_kernel(*_rows(p, a, b, c))[0]
+
+
+def _closest_barycentric(p, a, b, c) -> np.ndarray:
+    """Barycentric weights [K,3] of the point of triangle (a,b,c) closest to p."""
+    return _point_triangle_kernel(*_rows(p, a, b, c))[1]
 
 
 def _barycentric_clamped(p, a, b, c) -> np.ndarray:
@@ -666,8 +675,8 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
     k = 0
     for r in range(pe.shape[0]):
         e, h = cand_e[pe[r, 0]], pe[r, 1]
-        d, alpha = _seg_dist(_pt(x1, edges[e, 0]), _pt(x1, edges[e, 1]), _pt(T1, tool_edges[h, 0]),
-                             _pt(T1, tool_edges[h, 1]))
+        d, alpha = segment_distance(row3(x1, edges[e, 0]), row3(x1, edges[e, 1]), row3(T1, tool_edges[h, 0]),
+                             row3(T1, tool_edges[h, 1]))
         if d < trig:
             ee[k, 0], ee[k, 1], ee_dist[k], ee_alpha[k] = e, h, d, alpha
             k += 1
@@ -677,7 +686,7 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
     j = 0
     for r in range(pf.shape[0]):
         t, f = pf[r, 0], cand_f[pf[r, 1]]
-        d, w0, w1, w2 = _pt_tri(_pt(T1, t), _pt(x1, faces[f, 0]), _pt(x1, faces[f, 1]), _pt(x1, faces[f, 2]))
+        d, w0, w1, w2 = point_triangle(row3(T1, t), row3(x1, faces[f, 0]), row3(x1, faces[f, 1]), row3(x1, faces[f, 2]))
         if d < trig:
             fv[j, 0], fv[j, 1], fv_dist[j] = t, f, d
             fv_w[j, 0], fv_w[j, 1], fv_w[j, 2] = w0, w1, w2
@@ -704,4 +713,5 @@ def _warm_up_kernels() -> None:
     _segment_distance(x, tool, x, tool)
     _point_triangle_distance(x, x, tool, tool + 1)
     _barycentric_clamped(x, x, tool, tool + 1)
+    warm_up_clearance()
     _KERNELS_READY = True

@@ -1,14 +1,17 @@
 """The numba helpers shared by the collision stages: small vector algebra, the coplanarity cubic of the
-non-penetration filter, swept boxes and their sort-and-sweep join, point distances.
+non-penetration filter, swept boxes and their sort-and-sweep join, point, segment and triangle distances.
 
 Every function here is compiled by numba (``@njit``) or inlined into the kernels that call it
 (``@register_jitable``: plain Python on arrays, tensors or tuples too), so :mod:`.filter`,
-:mod:`.narrow_phase`, :mod:`.broad_phase` and :mod:`.correction` share one implementation of each formula.
+:mod:`.narrow_phase`, :mod:`.broad_phase`, :mod:`.correction` and :mod:`.clearance` share one implementation of
+each formula.
 The floating-point reasoning behind the filter's bounds (``ERROR_FACTOR``, ``UNDERFLOW_GUARD``) is in
 :mod:`.filter`'s docstring.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -229,3 +232,113 @@ def prim_boxes(X0, X1, prims, ids):
                 hi[k, a] = max(hi[k, a], X0[v, a], X1[v, a])
     return lo, hi
 
+
+# ------------------------------------------------------------------------- segment and triangle distances
+@register_jitable
+def row3(X, i):
+    """Row i of an [N,3] array as an (x, y, z) tuple."""
+    return X[i, 0], X[i, 1], X[i, 2]
+
+
+@register_jitable
+def lerp(a, b, t):
+    return a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])
+
+
+@register_jitable
+def clip01(x):
+    return min(max(x, 0.0), 1.0)
+
+
+@register_jitable
+def segment_params(u, v, k, l):
+    """(alpha on u-v, beta on k-l) in [0,1] of (approximately) closest points of two segments."""
+    d1, d2, r = vec_sub(v, u), vec_sub(l, k), vec_sub(u, k)
+    a, e, f = vec_dot(d1, d1), vec_dot(d2, d2), vec_dot(d2, r)
+    b, c = vec_dot(d1, d2), vec_dot(d1, r)
+    den = a * e - b * b
+    s = (b * f - c * e) / den if den > 1e-300 else 0.5
+    s = 0.5 if math.isnan(s) else clip01(s)
+    t = (b * s + f) / e if e > 1e-300 else 0.5
+    t = 0.5 if math.isnan(t) else clip01(t)
+    s = (b * t - c) / a if a > 1e-300 else 0.5
+    s = 0.5 if math.isnan(s) else clip01(s)
+    return s, t
+
+
+@register_jitable
+def point_segment_distance(p, a, b):
+    ab = vec_sub(b, a)
+    t = clip01(vec_dot(vec_sub(p, a), ab) / max(vec_dot(ab, ab), 1e-300))
+    d = vec_sub(p, lerp(a, b, t))
+    return math.sqrt(vec_dot(d, d))
+
+
+@register_jitable
+def segment_distance(u, v, k, l):
+    """(distance, alpha) of two segments: closest points, with the end-point distances as a safeguard."""
+    alpha, beta = segment_params(u, v, k, l)
+    d = vec_sub(lerp(u, v, alpha), lerp(k, l, beta))
+    dist = min(math.sqrt(vec_dot(d, d)), point_segment_distance(u, k, l), point_segment_distance(v, k, l),
+               point_segment_distance(k, u, v), point_segment_distance(l, u, v))
+    return dist, alpha
+
+
+@register_jitable
+def point_triangle_distance(p, a, b, c):
+    """Exact point-triangle distance: the plane distance when p projects inside, else the nearest edge."""
+    e0, e1 = vec_sub(b, a), vec_sub(c, a)
+    n = (e0[1] * e1[2] - e0[2] * e1[1], e0[2] * e1[0] - e0[0] * e1[2], e0[0] * e1[1] - e0[1] * e1[0])
+    nn = math.sqrt(vec_dot(n, n))
+    dist = min(point_segment_distance(p, a, b), point_segment_distance(p, b, c), point_segment_distance(p, c, a))
+    if nn > 0:
+        inside = True
+        for x, y in ((a, b), (b, c), (c, a)):
+            xy, xp = vec_sub(y, x), vec_sub(p, x)
+            cr = (xy[1] * xp[2] - xy[2] * xp[1], xy[2] * xp[0] - xy[0] * xp[2], xy[0] * xp[1] - xy[1] * xp[0])
+            inside = inside and vec_dot(cr, n) >= 0
+        if inside:
+            dist = min(dist, abs(vec_dot(vec_sub(p, a), n)) / nn)
+    return dist
+
+
+@register_jitable
+def point_triangle(p, a, b, c):
+    """(distance, w0, w1, w2): exact point-triangle distance and the barycentric weights of the closest
+    point (candidates: the clamped projection and the nearest point of each edge; the nearest wins)."""
+    dist = point_triangle_distance(p, a, b, c)
+    w = barycentric_clamped(p, a, b, c)
+    q = (w[0] * a[0] + w[1] * b[0] + w[2] * c[0], w[0] * a[1] + w[1] * b[1] + w[2] * c[1],
+         w[0] * a[2] + w[1] * b[2] + w[2] * c[2])
+    best = vec_dot(vec_sub(p, q), vec_sub(p, q))
+    for i in range(3):
+        x, y = (a, b, c)[i], (a, b, c)[(i + 1) % 3]
+        xy = vec_sub(y, x)
+        t = clip01(vec_dot(vec_sub(p, x), xy) / max(vec_dot(xy, xy), 1e-300))
+        d = vec_sub(p, lerp(x, y, t))
+        dd = vec_dot(d, d)
+        if dd < best:
+            best = dd
+            ww = [0.0, 0.0, 0.0]
+            ww[i] = 1.0 - t
+            ww[(i + 1) % 3] = t
+            w = (ww[0], ww[1], ww[2])
+    return dist, w[0], w[1], w[2]
+
+
+@register_jitable
+def barycentric_clamped(p, a, b, c):
+    """Barycentric weights of p's projection on triangle (a,b,c), clamped to the triangle, summing to 1."""
+    e0, e1, e2 = vec_sub(b, a), vec_sub(c, a), vec_sub(p, a)
+    d00, d01, d11 = vec_dot(e0, e0), vec_dot(e0, e1), vec_dot(e1, e1)
+    d20, d21 = vec_dot(e2, e0), vec_dot(e2, e1)
+    den = d00 * d11 - d01 * d01
+    v = (d11 * d20 - d01 * d21) / den if den != 0 else np.nan
+    w = (d00 * d21 - d01 * d20) / den if den != 0 else np.nan
+    if not (math.isfinite(v) and math.isfinite(w)):
+        v = w = 1.0 / 3.0
+    b0, b1, b2 = max(1.0 - v - w, 0.0), max(v, 0.0), max(w, 0.0)
+    s = b0 + b1 + b2
+    if not s > 0:
+        return 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0
+    return b0 / s, b1 / s, b2 / s

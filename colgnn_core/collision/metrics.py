@@ -164,8 +164,24 @@ def _summ(values: list[float], kind: str) -> float:
     return float(np.max(values)) if kind == "max" else float(np.mean(values))
 
 
+def _pooled(parts: list[dict]) -> dict:
+    """:func:`step_crossings` results of the pieces of one motion, as one: counts summed, mean depths weighted by
+    the counts, max depths the largest."""
+    out = {}
+    for kind in ("vf", "ee"):
+        n = sum(p[f"N_{kind}"] for p in parts)
+        out[f"N_{kind}"] = int(n)
+        out[f"d_{kind}_mean"] = float(sum(p[f"N_{kind}"] * p[f"d_{kind}_mean"] for p in parts) / n) if n else 0.0
+        out[f"d_{kind}_max"] = float(max(p[f"d_{kind}_max"] for p in parts))
+    return out
+
+
 def sequence_metrics(seq: Sequence, *, exact: bool = True, tool=None) -> dict:
     """All collision metrics of one sequence/rollout.
+
+    The crossings of step t -> t+1 are those of its motion (:meth:`colgnn_core.io.Sequence.motion`): the straight
+    motion, or the recorded piecewise-linear path of a ground-truth frame whose straight motion is not
+    collision-free (summed over the pieces).
 
     Returns {'steps': {key: [T-1] list} for CROSSING_KEYS, 'frames': {key: [T] list} for
     PENETRATION_KEYS, 'summary': {...}}. The summary holds, per key, the mean over steps /
@@ -181,10 +197,15 @@ def sequence_metrics(seq: Sequence, *, exact: bool = True, tool=None) -> dict:
                             seq.tool_positions.shape[1], tool=tool)
     steps = {k: [] for k in CROSSING_KEYS}
     for t in range(T - 1):
-        poses = (seq.tool_poses[t], seq.tool_poses[t + 1]) if tool is not None else (None, None)
-        r = step_crossings(seq.object_positions[t], seq.object_positions[t + 1], seq.object_faces,
-                           seq.tool_positions[t], seq.tool_positions[t + 1], seq.tool_faces, detector=det,
-                           exact=exact, tool_pose_t0=poses[0], tool_pose_t1=poses[1])
+        states = seq.motion(t + 1)
+        if len(states) == 2:
+            poses = (seq.tool_poses[t], seq.tool_poses[t + 1]) if tool is not None else (None, None)
+            r = step_crossings(seq.object_positions[t], seq.object_positions[t + 1], seq.object_faces,
+                               seq.tool_positions[t], seq.tool_positions[t + 1], seq.tool_faces, detector=det,
+                               exact=exact, tool_pose_t0=poses[0], tool_pose_t1=poses[1])
+        else:  # a recorded path (ground truth): crossings of every piece; its tool states have no pose to cull by
+            r = _pooled([step_crossings(a[0], b[0], seq.object_faces, a[1], b[1], seq.tool_faces, detector=det,
+                                        exact=exact) for a, b in zip(states[:-1], states[1:])])
         for k in CROSSING_KEYS:
             steps[k].append(r[k])
     frames = {k: [] for k in PENETRATION_KEYS}

@@ -15,6 +15,15 @@ tool motion into several model steps (``interpolate_poses``; more than
 corrects its output with :class:`~colgnn_core.collision.correction.CollisionCorrector`
 and feeds the *corrected* positions to the next step.
 
+The guarantee is stated for what is published: over the straight motion from the last published state
+to the new one (every vertex linear, the tool's vertices too), every object-surface/tool primitive pair
+stays farther apart than min(0.18 mm, 0.5 x its distance at the start), so ipctk's
+``is_step_collision_free`` (Tight-Inclusion, default line-search clearance) finds no collision in it and
+the new frame does not intersect the tool. A single model step is corrected for exactly that motion. A jump
+split into model steps is corrected per model step for contact only (nobody sees those motions), and then
+once more as a whole: the straight motion from the last published state to the last model step's result
+goes through the same correction, clearance included, and its output is the new state.
+
 The correction works on the object graph nodes' surface (surface-only models: all
 graph nodes; full-mesh models: the surface subset); interior mesh vertices are
 lifted from the corrected nodes (``lift_to_mesh``), so the published mesh is the
@@ -34,7 +43,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, CollisionCorrector
+from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, CollisionCorrector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses
 from colgnn_core.learn.core_model import EdgeSet
@@ -77,8 +86,9 @@ class StepResult:
     tool_vertices [M,3] world, tool_faces [G,3]; tool_pose [7] the (normalised) pose used.
     Counts are summed over the substeps (``*_before``: crossings in the raw network output;
     ``*_after``: crossings the fast check finds after correction); ``interior_cleared``: interior mesh vertices
-    the lifting had put inside the tool, moved out (published state only). timings_ms: graph, gnn,
-    correction, total (ms, summed over substeps).
+    the lifting had put inside the tool, moved out (published state only); ``published_moved``: with substeps,
+    surface vertices the correction of the whole published step moved (module docstring). timings_ms: graph,
+    gnn, correction, total (ms, summed over substeps).
     """
 
     positions: np.ndarray
@@ -96,6 +106,7 @@ class StepResult:
     correction_iterations: int = 0
     fallback: bool = False
     substeps: int = 1
+    published_moved: int = 0
     out_of_domain: int = 0     # model steps of this call outside the training domain (Predictor.outside_domain)
     timings_ms: dict = field(default_factory=dict)
 
@@ -339,6 +350,10 @@ class Predictor:
         """(validated pose, substeps) or InputError; does not change the state."""
         pose = self.scene.check_pose(tool_pose)
         n = self.substeps_for(pose)
+        turn = _rotation_angle(self.net.state.pose[3:], pose[3:])
+        if self.corrector is not None and turn > MAX_ROTATION:
+            raise InputError(f"tool pose jump too large: it turns the tool by {math.degrees(turn):.1f} deg in one "
+                             f"step; the collision guarantee covers up to {math.degrees(MAX_ROTATION):.0f} deg")
         if n > self.max_substeps:
             cur = self.net.state.pose
             raise InputError(
@@ -363,7 +378,9 @@ class Predictor:
         saved = (self.net.state, self.state)
         try:
             for sp in subposes:
-                self._model_step(sp, res, ms)
+                self._model_step(sp, res, ms, clearance=n == 1)
+            if n > 1 and self.corrector is not None:
+                self._correct_published(saved[0], pose, res, ms)
         except BaseException:
             # A failure inside a model step (e.g. non-finite network output) leaves the state as it was.
             self.net.state, self.state = saved
@@ -377,7 +394,27 @@ class Predictor:
         res.timings_ms = ms
         return res
 
-    def _model_step(self, pose_next: np.ndarray, res: StepResult, ms: dict) -> None:
+    def _correct_published(self, start, pose: np.ndarray, res: StepResult, ms: dict) -> None:
+        """After the model steps of one published step: correct the straight motion from the last published state
+        (``start``, the network state then) to the last model step's result, clearance included, as a model step is;
+        the output becomes the network's current positions."""
+        now = self.net.state
+        t = time.perf_counter()
+        c = self.corrector.correct(start.x_t.numpy(), now.x_t.numpy(), start.pose, pose, start.tool_t.numpy(),
+                                   now.tool_t.numpy(), clearance=True)
+        ms["correction"] += 1e3 * (time.perf_counter() - t)
+        res.published_moved = c.moved
+        res.vertex_face_after += c.vertex_face_after
+        res.edge_edge_after += c.edge_edge_after
+        res.penetrating_vertices_after = c.penetrating_after
+        res.correction_iterations += c.iterations
+        if c.fallback:
+            res.fallback = True
+            self.state = replace(self.state, fallbacks=self.state.fallbacks + 1)
+        if c.moved:
+            self.net.state = replace(now, x_t=torch.from_numpy(c.positions))
+
+    def _model_step(self, pose_next: np.ndarray, res: StepResult, ms: dict, clearance: bool = True) -> None:
         net = self.net
         tool_next_np = self.scene.tool.world_vertices(pose_next)
         tool_next = torch.from_numpy(tool_next_np)
@@ -396,7 +433,7 @@ class Predictor:
             t = time.perf_counter()
             now = net.state
             c = self.corrector.correct(now.x_t.numpy(), x_raw.numpy(), now.pose, pose_next, now.tool_t.numpy(),
-                                       tool_next_np)
+                                       tool_next_np, clearance=clearance)
             ms["correction"] += 1e3 * (time.perf_counter() - t)
             res.vertex_face_before += c.vertex_face_before
             res.edge_edge_before += c.edge_edge_before

@@ -9,13 +9,19 @@ Layout of an output folder::
 
 Every sequence file carries, besides the contract keys, ``object_tets``,
 ``object_rest``, ``newton_iterations`` [T], ``step_ms`` [T], ``min_distance`` [T] (object–tool, m),
-``kappa`` [T] (frame 0 has zeros / its initial distance), and ``seed``, ``scene``,
+``kappa`` [T] (frame 0 has zeros / its initial distance), ``subframes`` [T] (implicit steps
+per frame: more than 1 where a failed solve was halved), and ``seed``, ``scene``,
 ``resolution``, ``split``, ``dhat``, ``dmin``, ``object_fingerprint``, ``sim_options`` (JSON)
-so the manifest can be rebuilt from the files.
+so the manifest can be rebuilt from the files. Where the straight motion into a frame is not
+collision-free, the file records the intermediate states of its collision-free path
+(``subframe_frame``, ``subframe_object_positions``, ``subframe_tool_positions``:
+:data:`colgnn_core.io.SUBFRAME_KEYS`, :meth:`colgnn_core.io.Sequence.motion`).
 
-A family sequence that fails verification (SimulationError) is replaced by a spare seed
-of the same split (``max_retries``); the manifest lists the rejected seeds and why, so
-the bias this introduces (no trajectories the verified solver cannot do) is visible.
+Hard motions do not fail: a frame whose solve fails is solved again in halves, and a frame
+whose straight motion is not collision-free records its path (:class:`~colgnn_core.sim.ipc.IPCSimulator`).
+A family sequence that still fails verification (SimulationError: even 16 sub-frames did
+not converge) is replaced by a spare seed of the same split (``max_retries``); the manifest
+lists the rejected seeds and why, so any bias this introduces is visible.
 
 Resume: a sequence whose file exists, loads, matches the requested scene (and its mesh
 fingerprint) / seed / frames / solver options and (if the manifest lists it) has the
@@ -38,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from colgnn_core.errors import InputError, SimulationError
-from colgnn_core.io import Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
+from colgnn_core.io import SUBFRAME_KEYS, Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
 from colgnn_core.scenes import load_scene, sample_poses, split_seeds
 from colgnn_core.sim.ipc import IPCSimulator
 
@@ -64,6 +70,8 @@ def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_op
     ms = np.zeros(t_frames)
     dist = np.zeros(t_frames)
     kappa = np.zeros(t_frames)
+    subframes = np.ones(t_frames, dtype=np.int64)
+    path_frame, path_obj, path_tool = [], [], []
     obj[0], tool[0], dist[0] = sim.positions, sim.tool_positions, sim.tool_distance()
     frames = range(1, t_frames)
     if progress:
@@ -74,6 +82,15 @@ def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_op
         st = sim.step(poses[k])
         obj[k], tool[k] = sim.positions, sim.tool_positions
         iters[k], ms[k], dist[k], kappa[k] = st.newton_iterations, st.ms, st.min_distance, st.kappa
+        subframes[k] = st.subframes
+        for xo, xt in st.path:
+            path_frame.append(k)
+            path_obj.append(xo)
+            path_tool.append(xt)
+    recorded = {}
+    if path_frame:
+        recorded = dict(zip(SUBFRAME_KEYS, (np.asarray(path_frame, dtype=np.int64), np.asarray(path_obj),
+                                            np.asarray(path_tool))))
     return Sequence(
         object_positions=obj,
         object_faces=np.asarray(scene.object.faces, dtype=np.int64),
@@ -90,6 +107,8 @@ def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_op
             "kappa": kappa,
             "dhat": np.float64(sim.dhat),
             "dmin": np.float64(sim.dmin),
+            "subframes": subframes,
+            **recorded,
         },
     )
 
@@ -136,6 +155,9 @@ def _entry(job: _Job, path: Path, seq: Sequence) -> dict:
         "min_distance": float(md.min()),
         "dhat": float(seq.extra["dhat"]),
         "dmin": float(seq.extra["dmin"]),
+        # frames solved in halves, and frames whose motion is a recorded path (files from before these keys: 0)
+        "subframe_frames": int(np.sum(np.asarray(seq.extra.get("subframes", [1])) > 1)),
+        "path_frames": int(len(np.unique(seq.extra["subframe_frame"]))) if "subframe_frame" in seq.extra else 0,
         "sha256": _sha256(path),
     }
 

@@ -24,7 +24,7 @@ contact) and by a tet-inversion guard, then halved until the energy decreases.
   tool sags inside it unless the gap exceeds that sag. Measured on the 'ci' scenes (coarse
   faces, sharp cone tip): dmin = 2·dhat still failed 2 of 6 bunny sequences (a dent snapping
   back past the tip, faces moving 2 cm in a frame); 4·dhat passed them. Default 4·dhat
-  (≈ 0.9–1.7 mm on these scenes).
+  (≈ 0.9–1.7 mm on these scenes). The gap makes a recorded path (below) rare, not impossible.
 * D: IPC's lagged friction with ``scene.friction`` as μ (0 = off): ipctk
   TangentialCollisions + FrictionPotential for object–tool/self contact, and the same
   smoothed Coulomb model (f0 mollifier, ε_v·h) written out for the ground plane. Normal
@@ -43,11 +43,21 @@ is applied as a prescribed (Dirichlet) step whose object response solves
 H_ff p_f = −(g_f + H_ft p_t); that combined step is CCD-clamped too. The tool ends
 *exactly* on its target; if it cannot get there, :class:`SimulationError`.
 
-**Verification** after every step: ``ipctk.has_intersections`` is false,
-``ipctk.is_step_collision_free`` (Tight-Inclusion, exact up to 1e-6) of the straight
-motion from the previous frame is true, no object vertex is at or below the ground,
-every tet has J > 0, Newton converged and the tool sits exactly on its target. A
-failure raises :class:`SimulationError` naming the frame and leaves the state unchanged.
+**Sub-frames.** A frame whose solve fails (Newton does not converge, the tool cannot reach
+its target, the new state does not verify) is solved again as two sub-frames of dt/2 with
+the tool at the slerp midpoint, recursively, down to 2^MAX_SUBFRAME_DEPTH = 16 sub-frames
+(the Predictor's substep limit), so every trajectory the Predictor accepts can be tried.
+
+**Verification** of every state (frame or sub-frame end): ``ipctk.has_intersections`` is
+false (object–tool and self), no object vertex is at or below the ground, every tet has
+J > 0, Newton converged and the tool sits exactly on its target. Of every frame's motion:
+the straight motion from the previous frame is collision-free by ``ipctk.is_step_collision_free``
+(Tight-Inclusion, tolerance 1e-6): object–tool pairs with its default line-search clearance
+(the criterion the Predictor's published steps meet), object self-contact for a real touch.
+Where the straight motion fails, the motion between the two frames is the piecewise-linear
+path through intermediate solver states, every piece passing the same check; the sequence
+file records them (``subframe_*`` keys, :mod:`colgnn_core.sim.dataset`). A failure raises
+:class:`SimulationError` naming the frame and leaves the state unchanged.
 """
 
 from __future__ import annotations
@@ -61,7 +71,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from colgnn_core.errors import SimulationError
-from colgnn_core.geometry.transforms import validate_pose
+from colgnn_core.geometry.transforms import interpolate_poses, validate_pose
 from colgnn_core.sim.elasticity import StableNeoHookean, lumped_mass
 
 try:  # CHOLMOD-based; about 2x faster than scipy's SuperLU here
@@ -73,6 +83,7 @@ except ImportError:  # pragma: no cover - cholespy is in requirements
 
 _DEBUG = bool(os.environ.get("COLGNN_SIM_DEBUG"))  # print every Newton iteration (developer aid)
 _SETTLE_CACHE: dict = {}  # settled frame-0 object positions per (scene, mesh, tool pose, solver options)
+MAX_SUBFRAME_DEPTH = 4  # a frame whose solve fails is halved at most 4 times: up to 16 sub-frames (as the Predictor)
 
 
 def _barrier(s: np.ndarray, s_hat: float):
@@ -118,6 +129,10 @@ class StepStats:
     ms: float  # wall time of the step (ms)
     converged: bool
     forced_tool_steps: int = 0  # phase-2 iterations that still had to move the tool onto its target
+    subframes: int = 1  # implicit steps the frame took (1, or more when a solve failed and was halved)
+    # (object [N,3], tool [M,3]) of the intermediate states the frame's motion passes through when its straight
+    # frame-to-frame motion is not collision-free (see IPCSimulator.step); empty when it is.
+    path: tuple = ()
 
 
 class IPCSimulator:
@@ -172,6 +187,7 @@ class IPCSimulator:
         self.tool_penalty = float(tool_penalty)
         self.verify = bool(verify)
         self.dt = float(scene.dt)
+        self.h = self.dt  # the time step being solved: dt, or dt / 2^k for a frame solved as sub-frames
         self.gravity = np.asarray(scene.gravity, dtype=np.float64).reshape(3)
         self.mu = float(getattr(scene, "friction", 0.0) or 0.0)
         self.friction_eps_v = float(friction_eps_v)
@@ -212,12 +228,17 @@ class IPCSimulator:
         self.contact_sets = [tool_set]
         if self_contact:
             self.contact_sets.append(_ContactSet.build(self.rest, np.asarray(mesh.edges), np.asarray(mesh.faces), 0.0))
+        self.self_set = (self.contact_sets[1] if self_contact else
+                         _ContactSet.build(self.rest, np.asarray(mesh.edges), np.asarray(mesh.faces), 0.0))
         self.surface = np.asarray(mesh.surface_vertices, dtype=np.int64)
         self.ground = None if scene.ground_height is None else float(scene.ground_height)
         self.broad_phase = ipctk.LBVH()
         self.ccd = ipctk.AdditiveCCD()
         # Verification: exact Tight-Inclusion CCD, iteration-capped (the dmin gap keeps it fast).
         self.verify_ccd = ipctk.TightInclusionCCD(tolerance=1e-6, max_iterations=1_000_000)
+        # Object self-contact keeps no gap (rest meshes have close non-adjacent elements): a real touch is what fails.
+        self.verify_touch_ccd = ipctk.TightInclusionCCD(tolerance=1e-6, max_iterations=1_000_000,
+                                                        conservative_rescaling=1.0)
         self.barrier_fn = ipctk.ClampedLogBarrier()
 
         pinned = getattr(scene, "pinned", None)
@@ -284,7 +305,7 @@ class IPCSimulator:
         xo = x[: self.n_obj]
         dx = xo - ctx["x_tilde"]
         e = 0.5 * float(np.einsum("i,ij,ij->", self.mass, dx, dx))
-        e += self.dt**2 * self.elastic.energy(xo)
+        e += self.h**2 * self.elastic.energy(xo)
         for k, cs in enumerate(self.contact_sets):
             c, vc = self._collisions(cs, x)
             if len(c):
@@ -379,7 +400,7 @@ class IPCSimulator:
         ids = np.flatnonzero(lam > 0)
         if not ids.size:
             return 0.0, None, None
-        eps = self.friction_eps_v * self.dt
+        eps = self.friction_eps_v * self.h
         u = xo[ids, :2] - self.x[ids, :2]  # self.x is the state at the start of the step
         y = np.linalg.norm(u, axis=1)
         w = self.mu * lam[ids]
@@ -410,7 +431,7 @@ class IPCSimulator:
             if len(c):
                 tc.build(cs.mesh, vc, c, ipctk.BarrierPotential(self.dhat, self.kappa), self.mu)
             tcs.append(tc)
-        fp = ipctk.FrictionPotential(self.friction_eps_v * self.dt)
+        fp = ipctk.FrictionPotential(self.friction_eps_v * self.h)
         return tcs, fp, None, self._ground_lambda(x[: self.n_obj])
 
     def _barrier_distance_sq(self, x: np.ndarray) -> float:
@@ -524,8 +545,8 @@ class IPCSimulator:
         n = 3 * self.n_all
         phase = ctx["phase"]
         free = self._free_mask(phase == 1)
-        tol = self.newton_tol * self.bbox_diagonal * self.dt
-        h2 = self.dt**2
+        tol = self.newton_tol * self.bbox_diagonal * self.h
+        h2 = self.h**2
         mass_dof = np.zeros(n)
         mass_dof[: 3 * self.n_obj] = np.repeat(self.mass, 3)
         if phase == 1:
@@ -579,6 +600,7 @@ class IPCSimulator:
                         # No decrease along a descent direction: stalled at round-off level.
                         return x, np.abs(p).max() < 10 * tol
                 x, e0 = xn, en
+            stats["trace"].append(x.copy())  # every state the solver moves through (see step)
             d2 = self._barrier_distance_sq(x)
             if _DEBUG:
                 dev = np.abs(x[self.n_obj :] - ctx["target"]).max()
@@ -600,7 +622,7 @@ class IPCSimulator:
         free = self._free_mask(False)
         ge = np.zeros(3 * self.n_all)
         ge[: 3 * self.n_obj] = ((self.mass[:, None] * (xo - x_tilde)).reshape(-1)
-                                + self.dt**2 * self.elastic.gradient(xo).reshape(-1))
+                                + self.h**2 * self.elastic.gradient(xo).reshape(-1))
         gb, _ = self._contact_grad_hess(x, None, False, 1.0)
         kappa, kappa_max = ipctk.initial_barrier_stiffness(
             self.bbox_diagonal,
@@ -621,7 +643,7 @@ class IPCSimulator:
         # κ persists across steps (never below this step's IPC initial value): contact that needed a
         # stiffer barrier in the last frame needs it in this one too.
         self.kappa = min(max(kappa, self.kappa), kappa_max)
-        stats = {"iters": 0, "kappa_max": kappa_max, "forced": 0}
+        stats = {"iters": 0, "kappa_max": kappa_max, "forced": 0, "trace": []}
         ctx = {"x_tilde": x_tilde, "phase": 1, "target": target, "friction": self._friction_context(x)}
         if not np.array_equal(x[self.n_obj :], target):
             x, ok = self._newton(x, ctx, stats)
@@ -635,8 +657,9 @@ class IPCSimulator:
         snapped = np.any(rest != 0) and self._max_step(x, rest) >= 1.0
         if snapped:
             x[self.n_obj :] = target
+            stats["trace"].append(x.copy())
         if stats["iters"] > 0 and (not np.any(rest != 0) or (
-                snapped and np.abs(rest).max() < self.newton_tol * self.bbox_diagonal * self.dt)):
+                snapped and np.abs(rest).max() < self.newton_tol * self.bbox_diagonal * self.h)):
             # Phase 1 converged and the snap moved the tool by less than the Newton tolerance: the
             # object's Newton step it induces, H_oo⁻¹ H_ot δ, is of the same size, so x is converged.
             ok = True
@@ -653,38 +676,113 @@ class IPCSimulator:
     def step(self, tool_pose_next: np.ndarray) -> StepStats:
         """Advance one frame (dt) with the tool moved to ``tool_pose_next`` [7]; verify the frame.
 
-        Raises SimulationError naming the frame when Newton or verification fails; the simulator
-        state then stays at the previous frame.
+        Solving: one implicit step; if Newton fails or the new state does not verify, the frame is solved again as
+        two sub-frames of dt/2 (the tool at the slerp midpoint), recursively, down to ``2**MAX_SUBFRAME_DEPTH``.
+        Motion (see :meth:`motion_free`): the straight frame-to-frame motion must be collision-free. Where it is
+        not (a surface swinging round the cone's sharp tip within a frame: measured on a 2.5 ms sub-frame of the
+        ci cone_bunny press-and-drag, both ends 1.6 mm from the tip and the chord 0.7 µm from it), the frame's
+        motion is the piecewise-linear path through as few of the solver's own intermediate states (line-search
+        iterates, sub-frame ends) as make every piece collision-free; consecutive ones are one CCD-checked solver
+        move apart. They are returned in ``StepStats.path``.
+
+        Raises SimulationError naming the frame when the finest split fails; the simulator state then stays at the
+        previous frame.
         """
         t0 = time.perf_counter()
         pose = validate_pose(tool_pose_next)
-        target = self.tool.world_vertices(pose)
-        xo = self.x[: self.n_obj]
-        x_tilde = xo + self.dt * self.v + self.dt**2 * self.gravity
-        x_tilde[self.pinned] = xo[self.pinned]
-        kappa_before = self.kappa
+        start = (self.x, self.v, self.kappa, self.tool_pose)
+        frame = self.frame + 1
+        stats = {"iters": 0, "forced": 0, "subframes": 0, "trace": [self.x]}
         try:
-            x_new, st = self._solve_step(target, x_tilde)
-            frame = self.frame + 1
-            if not st["converged"]:
-                raise SimulationError(f"frame {frame}: Newton did not converge in {self.max_newton} iterations")
-            if self.verify:
-                self._verify(self.x, x_new, target, frame)
+            self._advance(self.tool_pose, pose, self.dt, 0, frame, stats)
+            path = self._motion_path(stats["trace"], frame) if self.verify else []
         except BaseException:
-            self.kappa = kappa_before
+            self.x, self.v, self.kappa, self.tool_pose = start
             raise
-        self.v = (x_new[: self.n_obj] - xo) / self.dt
-        self.x = x_new
-        self.tool_pose = pose
+        finally:
+            self.h = self.dt
         self.frame = frame
         return StepStats(
-            newton_iterations=int(st["iters"]),
+            newton_iterations=int(stats["iters"]),
             kappa=float(self.kappa),
             min_distance=self.tool_distance(),
             ms=(time.perf_counter() - t0) * 1e3,
             converged=True,
-            forced_tool_steps=int(st["forced"]),
+            forced_tool_steps=int(stats["forced"]),
+            subframes=int(stats["subframes"]),
+            path=tuple((x[: self.n_obj].copy(), x[self.n_obj :].copy()) for x in path),
         )
+
+    def _advance(self, pose_a: np.ndarray, pose_b: np.ndarray, h: float, depth: int, frame: int,
+                 stats: dict) -> None:
+        """Move the state from the tool at ``pose_a`` to ``pose_b`` in time ``h``: one implicit step, else two
+        halves (recursively, ``depth`` halvings so far). The solver's states go to ``stats['trace']``."""
+        try:
+            self._substep(pose_b, h, frame, stats)
+            return
+        except SimulationError as exc:
+            if depth >= MAX_SUBFRAME_DEPTH:
+                raise SimulationError(f"{exc} (solved as {2 ** depth} sub-frames)") from None
+        mid = interpolate_poses(pose_a, pose_b, np.array([0.5]))[0]
+        self._advance(pose_a, mid, 0.5 * h, depth + 1, frame, stats)
+        self._advance(mid, pose_b, 0.5 * h, depth + 1, frame, stats)
+
+    def _substep(self, pose: np.ndarray, h: float, frame: int, stats: dict) -> None:
+        """One implicit Euler step of length ``h`` with the tool driven to ``pose``; the new state verified
+        (:meth:`_verify_state`) and taken. SimulationError, state unchanged, when Newton or the verification fails."""
+        target = self.tool.world_vertices(pose)
+        xo = self.x[: self.n_obj]
+        self.h = h
+        x_tilde = xo + h * self.v + h**2 * self.gravity
+        x_tilde[self.pinned] = xo[self.pinned]
+        kappa_before = self.kappa
+        try:
+            x_new, st = self._solve_step(target, x_tilde)
+            stats["iters"] += st["iters"]
+            stats["forced"] += st["forced"]
+            if not st["converged"]:
+                raise SimulationError(f"frame {frame}: Newton did not converge in {self.max_newton} iterations")
+            if self.verify:
+                self._verify_state(x_new, target, frame)
+        except BaseException:
+            self.kappa = kappa_before
+            raise
+        stats["trace"].extend(st["trace"])
+        if not np.array_equal(stats["trace"][-1], x_new):
+            stats["trace"].append(x_new)
+        stats["subframes"] += 1
+        self.v = (x_new[: self.n_obj] - xo) / h
+        self.x = x_new
+        self.tool_pose = pose
+
+    def motion_free(self, x0: np.ndarray, x1: np.ndarray) -> bool:
+        """Is the straight motion x0 -> x1 (all vertices [N+M,3], linear) collision-free? Object–tool pairs by
+        Tight-Inclusion CCD with its default line-search clearance (the Predictor's guarantee, checked by
+        ``colgnn_core.collision.exact.tool_step_free``); object self-contact by a real touch."""
+        ts = self.contact_sets[0]
+        if not ipctk.is_step_collision_free(ts.mesh, ts.vertices(x0), ts.vertices(x1), broad_phase=self.broad_phase,
+                                            narrow_phase_ccd=self.verify_ccd):
+            return False
+        ss = self.self_set
+        return bool(ipctk.is_step_collision_free(ss.mesh, ss.vertices(x0), ss.vertices(x1),
+                                                 broad_phase=self.broad_phase, narrow_phase_ccd=self.verify_touch_ccd))
+
+    def _motion_path(self, trace: list, frame: int) -> list:
+        """Intermediate states of ``trace`` (the solver's states from the last frame to the new one) whose
+        piecewise-linear path is collision-free (:meth:`motion_free`); none when the straight motion is. From each
+        state the next is the trace's last, else the one halfway there, and so on."""
+        path, i, last = [], 0, len(trace) - 1
+        while i < last:
+            j = last
+            while j > i + 1 and not self.motion_free(trace[i], trace[j]):
+                j = i + (j - i) // 2
+            if j == i + 1 and not self.motion_free(trace[i], trace[j]):
+                raise SimulationError(f"frame {frame}: the motion from frame {frame - 1} is not collision-free, not "
+                                      "even along the solver's own steps")
+            if j < last:
+                path.append(trace[j])
+            i = j
+        return path
 
     def tool_distance(self) -> float:
         """Smallest object–tool surface distance (m): exact mesh pairs within dmin + 2·dhat, else the
@@ -711,13 +809,11 @@ class IPCSimulator:
             d = min(d, float((self.x[self.surface, 2] - self.ground).min()))
         return d
 
-    def _verify(self, x0: np.ndarray, x1: np.ndarray, target: np.ndarray, frame: int) -> None:
-        v0, v1 = self.cm.vertices(x0), self.cm.vertices(x1)
-        if ipctk.has_intersections(self.cm.mesh, v1, broad_phase=self.broad_phase):
+    def _verify_state(self, x1: np.ndarray, target: np.ndarray, frame: int) -> None:
+        """A new state: no intersection (object–tool or self), above the ground, no inverted tet, the tool exactly on
+        ``target``. (The motion into it is checked by :meth:`step`.)"""
+        if ipctk.has_intersections(self.cm.mesh, self.cm.vertices(x1), broad_phase=self.broad_phase):
             raise SimulationError(f"frame {frame}: the surface intersects itself or the tool")
-        if not ipctk.is_step_collision_free(self.cm.mesh, v0, v1, broad_phase=self.broad_phase,
-                                            narrow_phase_ccd=self.verify_ccd):
-            raise SimulationError(f"frame {frame}: the straight motion from frame {frame - 1} is not collision-free")
         if self.ground is not None and np.any(x1[self.surface, 2] <= self.ground):
             raise SimulationError(f"frame {frame}: an object vertex is at or below the ground")
         j = self.elastic.jacobians(x1[: self.n_obj])
