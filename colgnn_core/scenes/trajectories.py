@@ -236,7 +236,7 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
         near = path.last[:2] if rng.uniform() < float(fam.get("near_fraction", 0.5)) else None
         xy, quat, h = _coverage_target(scene, rng, depth, near, orientation)
     travel = max(float(path.last[2]), _rest_height(scene, xy))
-    if np.linalg.norm(xy - path.last[:2]) > 1e-9:  # out of contact: at the family's top speed
+    if len(path) > 1 and np.linalg.norm(xy - path.last[:2]) > 1e-9:  # out of contact: at the family's top speed
         path.move_to(np.array([path.last[0], path.last[1], travel]), path.last[3:], top)
         path.move_to(np.array([xy[0], xy[1], travel]), quat, top)
     path.move_to(np.array([xy[0], xy[1], h - depth]), quat, speed)
