@@ -92,10 +92,15 @@ def test_correction_row_and_hard_cases_are_clean(report):
     c = s.rows["full+correction"].collisions
     assert c.N_vf_total == 0 and c.N_ee_total == 0 and c.intersecting_frames == 0
     assert set(s.hard_cases) == {"test sequence", "3x faster", "grazing", "jitter", "leave and re-enter",
-                                 "random with tilts"}
+                                 "press and drag", "fast plunge", "random with tilts"}
     for case, h in s.hard_cases.items():
-        assert h.finite and h.intersecting == 0 and h.contact == 0 and h.after_nonzero == 0, (case, h)
+        assert h.finite and h.intersecting == 0 and h.crossing == 0 and h.after_nonzero == 0, (case, h)
     assert s.hard_cases["random with tilts"].steps == 30
+    assert s.hard_cases["fast plunge"].substeps > s.hard_cases["fast plunge"].steps  # split into model steps
+    steps = sum(h.steps for h in s.hard_cases.values())
+    md = (report[1] / "RESULTS.md").read_text()
+    assert ("ipctk's exact step check found 0 crossing steps (of which 0 touch) and 0 intersecting frames in "
+            f"{steps} published steps") in md
 
 
 def test_model_paths_and_bad_arguments(tmp_path):

@@ -18,7 +18,8 @@ with ``clearance``: its SDF bound and swept boxes grown by it). Each candidate p
 any point of the other over the step (each vertex's displacement about the mean of the pair's four, the largest per
 primitive, summed), so from a time t where the distance is d > thr it cannot reach thr before t + (d - thr) / L.
 The next time examined is t + 0.9 (d - thr) / L; a pair passes when that reaches 1, and is flagged when a distance
-<= thr is found or after ``max_iterations`` (conservative). Distances are exact (point–triangle, segment–segment).
+<= thr + FLAG_TOLERANCE is found (a pair closing at the bounding speed approaches thr geometrically and would never
+reach it) or after ``max_iterations`` (conservative). Distances are exact (point–triangle, segment–segment).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ CLEARANCE = 1.8e-4        # m: > sqrt(3) x 1e-4, the oracle's absolute clearance
 CLEARANCE_RATIO = 0.5     # > sqrt(3) x 0.2 = 0.35, the oracle's relative clearance likewise
 MAX_ITERATIONS = 2000     # additive-CCD iterations per pair before it is flagged anyway
 STEP_FRACTION = 0.9       # of the largest safe advance (d - thr) / L taken per iteration
+FLAG_TOLERANCE = 1e-7     # m: a distance within this of the threshold flags the pair
 _NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
 
@@ -74,7 +76,8 @@ def _distance(is_ee, P):
 @njit(cache=True)
 def _pair_clearance(is_ee, P0, P1, delta, rho, max_iterations):
     """(ok, t, d, d0) for one pair: rows 0-3 of P0 / P1 [4,3] are (point, triangle) or (edge, edge) at t = 0 / 1.
-    ok: the distance stays > min(delta, rho d0) over [0, 1]; else (t, d) where it was found not to."""
+    ok: the distance stays > min(delta, rho d0) over [0, 1]; else (t, d) where it was found at or within
+    FLAG_TOLERANCE of that threshold."""
     m0 = (P1[0, 0] - P0[0, 0] + P1[1, 0] - P0[1, 0] + P1[2, 0] - P0[2, 0] + P1[3, 0] - P0[3, 0]) / 4.0
     m1 = (P1[0, 1] - P0[0, 1] + P1[1, 1] - P0[1, 1] + P1[2, 1] - P0[2, 1] + P1[3, 1] - P0[3, 1]) / 4.0
     m2 = (P1[0, 2] - P0[0, 2] + P1[1, 2] - P0[1, 2] + P1[2, 2] - P0[2, 2] + P1[3, 2] - P0[3, 2]) / 4.0
@@ -88,7 +91,7 @@ def _pair_clearance(is_ee, P0, P1, delta, rho, max_iterations):
         L = dev[0] + max(dev[1], dev[2], dev[3])
     d0 = _distance(is_ee, P0)
     thr = min(delta, rho * d0)
-    if not d0 > thr:
+    if not d0 > thr + FLAG_TOLERANCE:
         return False, 0.0, d0, d0
     if L <= 0.0:  # the pair moves rigidly by one translation: its distance is constant
         return True, 1.0, d0, d0
@@ -101,7 +104,7 @@ def _pair_clearance(is_ee, P0, P1, delta, rho, max_iterations):
         for i in range(4):
             P[i, 0], P[i, 1], P[i, 2] = lerp(row3(P0, i), row3(P1, i), t)
         d = _distance(is_ee, P)
-        if not d > thr:
+        if not d > thr + FLAG_TOLERANCE:
             return False, t, d, d0
     return False, t, d, d0
 

@@ -73,7 +73,7 @@ smallest singular value is cos(theta/2) for a rotation by theta: the distance st
 least cos(theta/2) d0 >= CLEARANCE_RATIO d0 for theta <= 2 arccos(CLEARANCE_RATIO) = 120
 degrees (the Predictor refuses larger turns in one call).
 
-Locality: only vertices the projection, a crossing pair or the fallback region touch
+Locality: only vertices the projection, a crossing pair, a clearance push or the fallback region touch
 are written; every other entry of the output is the input array's value, bit for bit.
 """
 

@@ -122,7 +122,7 @@ def hard_case_report(loaded, scene, frames: int, random_steps: int, threads: int
     pred = Predictor.from_checkpoint(loaded, scene=scene, threads=threads, limits="data",
                                      rest_relaxation=RECOMMENDED_REST_RELAXATION)
     out = {}
-    for name, poses in hard_cases(scene, frames, random_steps).items():
+    for name, poses in hard_cases(scene, frames, random_steps, step=pred.max_translation).items():
         t0 = time.perf_counter()
         try:
             case = HardCase(**check_rollout(pred, poses), finite=True)

@@ -26,7 +26,8 @@ from colgnn_core.collision.exact import self_intersects, tool_intersects, tool_s
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import family_poses, stats
 from colgnn_core.geometry.transforms import interpolate_poses
-from colgnn_core.runtime.predictor import Predictor
+from colgnn_core.runtime.predictor import Predictor, tool_step_limits
+from colgnn_core.scenes.hard_cases import hard_trajectories
 from colgnn_core.scenes.trajectories import scripted_poses
 
 
@@ -61,7 +62,8 @@ def _leave_and_settle(scene, last: np.ndarray, max_translation: float, settle: i
     return np.concatenate([back, np.repeat(rest[None], settle, axis=0)])
 
 
-def hard_cases(scene, frames: int = 40, random_steps: int = 2000) -> dict[str, np.ndarray]:
+def hard_cases(scene, frames: int = 40, random_steps: int = 2000, step: float | None = None
+               ) -> dict[str, np.ndarray]:
     """The hard-case tool trajectories [T,7] of a scene, by name.
 
     * ``test sequence``: a held-out family trajectory;
@@ -70,6 +72,10 @@ def hard_cases(scene, frames: int = 40, random_steps: int = 2000) -> dict[str, n
       touches the surface;
     * ``jitter``: the scripted press with ±1.5 mm of uniform noise on every pose;
     * ``leave and re-enter``: repeated fast stabs to the deepest family depth;
+    * ``press and drag``, ``fast plunge``: :func:`colgnn_core.scenes.hard_cases.hard_trajectories` (85% of the way
+      to the deepest valid pose, then a quarter of the object's extent each way; straight to the deepest valid
+      pose at 4 model steps per frame), with ``step`` the per-model-step tool motion (default: the scene family's,
+      :func:`~colgnn_core.runtime.predictor.tool_step_limits`);
     * ``random with tilts``: ``random_steps`` steps of smooth random motion with the family's tilts (left out
       when ``random_steps`` is 0).
     """
@@ -81,6 +87,8 @@ def hard_cases(scene, frames: int = 40, random_steps: int = 2000) -> dict[str, n
     jitter[:, :3] = np.clip(jitter[:, :3], scene.workspace_min, scene.workspace_max)
     cases = {"test sequence": family_poses(scene, frames + 1), "3x faster": family_poses(scene, 3 * frames, 2)[::3],
              "grazing": graze, "jitter": jitter, "leave and re-enter": scripted_poses(scene, "stab", frames)}
+    step = tool_step_limits(scene)[0] if step is None else float(step)
+    cases.update(hard_trajectories(scene, step, kinds=("press and drag", "fast plunge")))
     if random_steps:
         cases["random with tilts"] = scripted_poses(scene, "random", random_steps + 1, seed=7)
     return cases
@@ -90,12 +98,13 @@ def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
     """Step the Predictor ``pred`` through ``poses[1:]`` (from ``poses[0]``, rest shape) and check the published
     frames and steps with ipctk's exact oracle.
 
-    Every ``check_every``-th frame, and every frame whose step needed a correction or a fallback, is checked for
-    object–tool intersection; the step into it (when it was one model step) for a crossing with ipctk's
-    line-search clearance (``crossing``) and for a real touch (``contact``). Raises InputError if a published
-    frame is not finite. Returns counts: steps, checked, intersecting, crossing, contact, fallback_steps,
-    fallbacks_total, before (crossings found before the correction), after_nonzero (steps the Predictor itself
-    reported unclean after its correction), substeps.
+    Every ``check_every``-th frame, and every frame whose step needed a correction, a fallback or model substeps,
+    is checked for object–tool intersection, and the step into it, the straight motion from the previous
+    published frame (split into model steps or not), by ipctk's ``is_step_collision_free`` with its default
+    line-search clearance (``crossing``: what the Predictor guarantees not to happen) and for a real touch
+    (``contact``). Raises InputError if a published frame is not finite. Returns counts: steps, checked,
+    intersecting, crossing, contact, fallback_steps, fallbacks_total, before (crossings found before the
+    correction), after_nonzero (steps the Predictor itself reported unclean after its correction), substeps.
     """
     scene = pred.scene
     F, TF = scene.object.faces, scene.tool.faces
@@ -113,11 +122,10 @@ def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
         counts["before"] += before
         counts["substeps"] += r.substeps
         counts["after_nonzero"] += bool(r.vertex_face_after or r.edge_edge_after or r.penetrating_vertices_after)
-        if k % check_every == 0 or before or r.fallback:
+        if k % check_every == 0 or before or r.fallback or r.substeps > 1 or r.published_moved:
             counts["checked"] += 1
             counts["intersecting"] += tool_intersects(r.positions, F, r.tool_vertices, TF)
-            # With substeps the published step is not one linear motion: only its frames are checked.
-            if r.substeps == 1 and not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF):
+            if not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF):
                 counts["crossing"] += 1
                 counts["contact"] += not tool_step_free(prev, r.positions, F, prev_tool, r.tool_vertices, TF,
                                                        contact_only=True)
