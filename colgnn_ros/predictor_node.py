@@ -130,7 +130,7 @@ class PredictorNode(Node):
                                                frame_id=self.frame_id, ns="tool", color=(0.6, 0.6, 0.65, 0.6))
 
         self.stats: dict[str, int] = {"poses_received": 0, "poses_superseded": 0, "steps": 0, "model_steps": 0,
-                                      "fallbacks": 0, "resets": 0, "publish_errors": 0}
+                                      "fallbacks": 0, "out_of_domain": 0, "resets": 0, "publish_errors": 0}
         self.stats.update({f"rejected_{r}": 0 for r in REJECT_REASONS})
         self._step_ms: deque[float] = deque(maxlen=STEP_WINDOW)
         self._step_times: deque[float] = deque(maxlen=STEP_WINDOW)  # time.monotonic() of each step
@@ -215,6 +215,10 @@ class PredictorNode(Node):
         st["steps"] += 1
         st["model_steps"] += res.substeps
         st["fallbacks"] += int(res.fallback)
+        if res.out_of_domain and not st["out_of_domain"]:
+            self._warn("out_of_domain", "the tool or the shape is outside the model's training data: the published "
+                       "shape is an extrapolation (counted in /diagnostics 'out_of_domain')")
+        st["out_of_domain"] += res.out_of_domain
         self._step_ms.append(res.timings_ms["total"])
         self._step_times.append(self._last_step_t)
         return True
@@ -305,7 +309,8 @@ class PredictorNode(Node):
     def _publish_diagnostics(self) -> None:
         values = self.diagnostics_values()
         rejected = values["rejected_total"]
-        level = DiagnosticStatus.WARN if rejected or self.stats["fallbacks"] else DiagnosticStatus.OK
+        level = (DiagnosticStatus.WARN if rejected or self.stats["fallbacks"] or self.stats["out_of_domain"]
+                 else DiagnosticStatus.OK)
         message = (f"{values['steps']} steps, {rejected} poses rejected, {self.stats['fallbacks']} fallbacks"
                    if values["steps"] or rejected else "waiting for tool poses")
         self._diag_pub.publish(diagnostic_array(self.get_clock().now().nanoseconds, f"{NODE_NAME}: {self.scene.name}",

@@ -234,7 +234,7 @@ def test_reset_service_returns_to_rest(node, ros, checkpoint, poses):
         now = n.get_clock().now().nanoseconds
         for i in range(1, 5):
             assert n.process_pose(pose_msg(poses[i], now + i))
-        rest = fx.scene().object.vertices
+        rest = n.predictor.rest_mesh  # the settled rest the ground truth starts from
         client = node.create_client(Trigger, f"{ns}/reset")
         assert spin_until(executor, client.service_is_ready)
         future = client.call_async(Trigger.Request())

@@ -26,15 +26,23 @@ import numpy as np
 
 from colgnn_core.collision.metrics import sequence_metrics
 from colgnn_core.errors import InputError
-from colgnn_core.evaluation.measure import collision_aggregate, mean_std, rmse_fraction, stats, test_files
+from colgnn_core.evaluation.measure import (collision_aggregate, contact_region, mean_std,
+                                            relative_displacement_error, rmse_fraction, stats, test_files)
 from colgnn_core.evaluation.render import save_png
 from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
 from colgnn_core.learn.data import load_checked_sequence
-from colgnn_core.runtime.models import load_model
+from colgnn_core.runtime.models import load_model, rest_baseline
+from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import scene_names
 
 MODES = ("raw", "corrected")
+# Rows of the relative-displacement table: the model's modes, the model as the ROS node runs it (output caps from the
+# training data and rest relaxation on), and the two trivial baselines a model must beat.
+RELATIVE_ROWS = ("raw", "corrected", "node", "rest", "rest_correction")
+RELATIVE_LABELS = {"raw": "raw network", "corrected": "corrected (no caps, no rest relaxation)",
+                   "node": "corrected, node defaults (caps + rest relaxation)", "rest": "rest (nothing moves)",
+                   "rest_correction": "rest + correction (no network)"}
 RMSE_STEPS = (1, 10, 50)
 ROW_LABELS = {"ground_truth": "ground truth", "raw": "raw network", "corrected": "corrected"}
 
@@ -121,16 +129,20 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
             coll[mode].append(m)
             totals = {k: int(np.asarray(v).sum()) for k, v in seq.extra.items()
                       if k not in ("step_ms",) and not k.endswith("_ms") and np.asarray(v).dtype.kind in "iu"}
-            rec[mode] = {"rmse": [float(e) for e in err], "rmse_all": float(err[1:].mean()) if len(err) > 1 else 0.0,
+            rec[mode] = {"positions": seq.object_positions, "rmse": [float(e) for e in err],
+                         "rmse_all": float(err[1:].mean()) if len(err) > 1 else 0.0,
                          "collisions": m["summary"], "extra_totals": totals,
                          "step_ms_median": stats(seq.extra["step_ms"][1:], empty=0.0)["median"],
                          "rollout_s": t_roll, "metrics_s": time.perf_counter() - t0}
+        rec["relative"] = _relative_errors(loaded, scene, gt, {m: rec[m].pop("positions") for m in modes})
         per_sequence.append(rec)
         if progress:
             parts = [f"{mode} RMSE all {rec[mode]['rmse_all']:.2e}, N_vf {rec[mode]['collisions']['N_vf_total']:.0f}"
                      for mode in modes]
             print(f"[{i + 1}/{len(files)}] {path.name}: " + "; ".join(parts), flush=True)
 
+    relative = {row: {part: mean_std([r["relative"][row][part] for r in per_sequence])
+                      for part in ("all", "contact")} for row in per_sequence[0]["relative"]}
     rows: dict = {"ground_truth": {"rmse": None, "collisions": collision_aggregate(coll["ground_truth"])}}
     for mode in modes:
         rows[mode] = {"rmse": _rmse_summary(curves[mode]), "collisions": collision_aggregate(coll[mode])}
@@ -147,10 +159,29 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         "bbox_diagonal": float(diagonal),
         "rmse_steps": list(RMSE_STEPS),
         "rows": rows,
+        "relative": relative,
         "per_sequence": per_sequence,
         "wall_s": time.perf_counter() - t_start,
     }
     return write_report(result, out, "metrics", "rmse_over_time.png", format_markdown, plot_rmse)
+
+
+def _relative_errors(loaded, scene, gt, positions: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """Relative displacement error (all vertices, contact region) of one test sequence for every RELATIVE_ROWS row:
+    the model's rollouts ``positions`` (mode -> [T,N,3]), the node's defaults and the two trivial baselines, each
+    started from the ground truth's frame 0 (the settled rest)."""
+    truth = gt.object_positions
+    rest = truth[0]
+    runs = dict(positions)
+    runs["node"] = rollout(loaded, gt.tool_poses, correction=True, scene=scene, initial_positions=rest, limits="data",
+                           predictor_options={"rest_relaxation": RECOMMENDED_REST_RELAXATION}).object_positions
+    runs["rest"] = np.repeat(rest[None], len(truth), axis=0)
+    runs["rest_correction"] = rollout(rest_baseline(loaded, scene), gt.tool_poses, correction=True, scene=scene,
+                                      initial_positions=rest).object_positions
+    ids = contact_region(truth, rest)
+    return {row: {"all": relative_displacement_error(p, truth, rest),
+                  "contact": relative_displacement_error(p, truth, rest, ids)}
+            for row, p in runs.items()}
 
 
 def write_report(result: dict, out: Path, stem: str, plot_name: str, markdown, plot) -> dict:
@@ -199,7 +230,19 @@ def format_markdown(result: dict) -> str:
         cells.append(f"{c['intersecting_frames']}/{c['frames']}")
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
-    return "\n".join(lines)
+    return "\n".join(format_relative(result["relative"]) + [""] + lines)
+
+
+def format_relative(relative: dict) -> list[str]:
+    """The relative-displacement table (mean ± std over sequences) as Markdown lines, trivial baselines included."""
+    lines = ["Relative displacement error ||X - X_gt|| / ||X_gt - X_rest|| over frames 1.. (1.0 = no better than "
+             "\"nothing moves\"; contact region: the 10% of vertices the ground truth moves most), mean ± std over "
+             "the test sequences. Lower is better.", "",
+             "| row | all vertices | contact region |", "|---|---:|---:|"]
+    for key, row in relative.items():
+        cells = [f"{row[p]['mean']:.3f} ± {row[p]['std']:.3f}" for p in ("all", "contact")]
+        lines.append(f"| {RELATIVE_LABELS.get(key, key)} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def plot_curves(curves: dict[str, tuple], title: str, path: Path, dashed: tuple[str, ...] = ()) -> Path:

@@ -1,7 +1,10 @@
 """Where each number of the evaluation is measured: the statistics and data selections every report shares.
 
 * :func:`stats`: median and p95 (ms per step everywhere: speed, solver, frontier, stability, the ROS node);
-* :func:`rmse_fraction`: position RMSE per frame as a fraction of the object's rest bounding-box diagonal;
+* :func:`relative_displacement_error`: ||X - X_gt|| / ||X_gt - X_rest|| over frames 1.. and the vertices (all, or
+  the :func:`contact_region`): 1.0 is no better than "nothing moves" (the primary accuracy figure);
+* :func:`rmse_fraction`: position RMSE per frame as a fraction of the object's rest bounding-box diagonal (secondary:
+  it hides a model that never moves, because most vertices barely move);
 * :func:`mean_std`: mean ± std over test sequences;
 * :func:`collision_aggregate`: crossings and penetrations pooled over sequences
   (:func:`colgnn_core.collision.metrics.sequence_metrics` per sequence);
@@ -31,6 +34,36 @@ def stats(values, empty: float | None = None) -> dict[str, float]:
     if v.size == 0 and empty is not None:
         return {"median": float(empty), "p95": float(empty)}
     return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
+
+
+CONTACT_FRACTION = 0.1  # the contact region: this fraction of the vertices, those the ground truth moves most
+
+
+def contact_region(truth: np.ndarray, rest: np.ndarray, fraction: float = CONTACT_FRACTION) -> np.ndarray:
+    """Vertex ids [K] (K = round(fraction * N), at least 1) that the ground truth ``truth`` [T,N,3] moves farthest
+    from ``rest`` [N,3] at any frame, ascending by that distance."""
+    if not 0 < fraction <= 1:
+        raise InputError(f"fraction must be in (0, 1], got {fraction}")
+    d = np.linalg.norm(np.asarray(truth) - np.asarray(rest)[None], axis=2).max(axis=0)
+    k = max(1, int(round(fraction * d.shape[0])))
+    return np.argsort(d, kind="stable")[-k:]
+
+
+def relative_displacement_error(pred: np.ndarray, truth: np.ndarray, rest: np.ndarray,
+                                vertices: np.ndarray | None = None) -> float:
+    """``||pred - truth|| / ||truth - rest||`` (Frobenius norms over frames 1..T-1 and ``vertices``, default all).
+
+    pred, truth: [T,N,3] m; rest: [N,3] the state at frame 0 (the settled rest the ground truth starts from).
+    0 is exact, 1.0 is what predicting "nothing moves" scores; inf when the ground truth does not move at all.
+    """
+    pred, truth, rest = np.asarray(pred), np.asarray(truth), np.asarray(rest)
+    if pred.shape != truth.shape or truth.shape[1:] != rest.shape:
+        raise InputError(f"shapes differ: pred {pred.shape}, truth {truth.shape}, rest {rest.shape}")
+    if vertices is not None:
+        pred, truth, rest = pred[:, vertices], truth[:, vertices], rest[vertices]
+    num = float(np.sqrt(((pred[1:] - truth[1:]) ** 2).sum()))
+    den = float(np.sqrt(((truth[1:] - rest[None]) ** 2).sum()))
+    return num / den if den > 0 else (0.0 if num == 0 else math.inf)
 
 
 def rmse_fraction(pred: np.ndarray, truth: np.ndarray, diagonal: float) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from colgnn_core.errors import InputError
-from colgnn_core.evaluation.measure import family_poses, rmse_fraction, stats
+from colgnn_core.evaluation.measure import family_poses, relative_displacement_error, rmse_fraction, stats
 from colgnn_core.runtime.predictor import Predictor
 from colgnn_core.scenes import scene_names
 from colgnn_core.sim.dataset import simulate_sequence
@@ -26,12 +26,12 @@ def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
 
     Returns ``stages`` ({'total', 'graph', 'gnn', 'correction'}: per-step ms lists; total = wall time of
     ``step``), ``positions`` [T,N,3] (frame 0 = x0), ``crossings_before``, ``crossings_after`` and ``fallbacks``
-    (totals over the steps).
+    and ``out_of_domain`` (totals over the steps).
     """
     predictor.reset(positions=x0, tool_pose=poses[0])
     stages: dict[str, list[float]] = {"total": [], "graph": [], "gnn": [], "correction": []}
     positions = [np.asarray(x0, dtype=np.float64)]
-    before = after = fallbacks = 0
+    before = after = fallbacks = outside = 0
     for pose in poses[1:]:
         t0 = time.perf_counter()
         res = predictor.step(pose)
@@ -42,8 +42,9 @@ def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
         before += res.vertex_face_before + res.edge_edge_before
         after += res.vertex_face_after + res.edge_edge_after
         fallbacks += int(res.fallback)
+        outside += res.out_of_domain
     return {"stages": stages, "positions": np.stack(positions), "crossings_before": int(before),
-            "crossings_after": int(after), "fallbacks": int(fallbacks)}
+            "crossings_after": int(after), "fallbacks": int(fallbacks), "out_of_domain": int(outside)}
 
 
 def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
@@ -90,9 +91,12 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "speedup_vs_ipc": ipc["median"] / total["median"],
         "rollout_rmse": {"step_1": float(err[1]), "step_10": float(err[min(10, len(err) - 1)]),
                          "all": float(err[1:].mean())},
+        "relative_displacement_error": relative_displacement_error(timed["positions"], truth.object_positions,
+                                                                   truth.object_positions[0]),
         "crossings_before_correction": timed["crossings_before"],
         "crossings_after_correction": timed["crossings_after"],
         "fallbacks": timed["fallbacks"],
+        "out_of_domain_steps": timed["out_of_domain"],
         "threads": int(torch.get_num_threads()),
         "compiled": bool(predictor.compiled),
         "vertices": int(len(scene.object.vertices)),

@@ -103,6 +103,49 @@ class GraphNetBlock(nn.Module):
         return MultiGraph(h_new, new_edges)
 
 
+@dataclass(frozen=True, eq=False)
+class Pooling:
+    """A coarse level for :class:`EncodeProcessDecode`: clusters of the first ``assign.shape[0]`` fine nodes.
+
+    ``assign`` [P] int64 cluster (coarse node) of each pooled fine node; ``inverse_counts`` [K,1] float32 one over
+    the cluster sizes (for the mean); ``edges`` the coarse edge set (raw features, encoded by the network).
+    """
+
+    assign: torch.Tensor
+    inverse_counts: torch.Tensor
+    edges: EdgeSet
+
+    @property
+    def num_coarse(self) -> int:
+        return int(self.inverse_counts.shape[0])
+
+
+class CoarseLevel(nn.Module):
+    """Pool fine latents to cluster means, run ``steps`` GraphNet blocks on the coarse graph, add the result back.
+
+    It lets information cross the whole object in a few cheap steps: the coarse graph has far fewer nodes and
+    edges than the fine one (the long-range part of multiscale MeshGraphNets / BSMS-GNN).
+    """
+
+    def __init__(self, edge_in: int, latent: int, steps: int, mlp_layers: int):
+        super().__init__()
+        self.edge_encoder = make_mlp(edge_in, latent, latent, mlp_layers)
+        self.down = make_mlp(latent, latent, latent, mlp_layers)
+        self.blocks = nn.ModuleList(GraphNetBlock(latent, mlp_layers, ("coarse",)) for _ in range(steps))
+        self.up = make_mlp(latent, latent, latent, mlp_layers, layer_norm=False)
+
+    def forward(self, h: torch.Tensor, pooling: Pooling) -> torch.Tensor:
+        """Fine node latents [N,D] -> updated fine latents [N,D] (nodes past the pooled ones unchanged)."""
+        p = pooling.assign.shape[0]
+        pooled = h.new_zeros((pooling.num_coarse, h.shape[1])).index_add_(0, pooling.assign, h[:p])
+        coarse = MultiGraph(self.down(pooled * pooling.inverse_counts),
+                            {"coarse": replace(pooling.edges, features=self.edge_encoder(pooling.edges.features))})
+        for block in self.blocks:
+            coarse = block(coarse)
+        back = self.up(coarse.node_features)[pooling.assign]
+        return torch.cat([h[:p] + back, h[p:]], dim=0)
+
+
 class EncodeProcessDecode(nn.Module):
     """Encoder, ``message_passing_steps`` GraphNet blocks, decoder.
 
@@ -116,16 +159,22 @@ class EncodeProcessDecode(nn.Module):
     """
 
     def __init__(self, node_in: int, edge_in: dict[str, int], out_size: int, latent: int = 128,
-                 message_passing_steps: int = 15, mlp_layers: int = 2):
+                 message_passing_steps: int = 15, mlp_layers: int = 2, coarse_edge_in: int = 0,
+                 coarse_steps: int = 0):
         super().__init__()
-        if latent < 1 or message_passing_steps < 0 or mlp_layers < 0:
-            raise ValueError(f"bad sizes: latent={latent}, steps={message_passing_steps}, mlp_layers={mlp_layers}")
+        if latent < 1 or message_passing_steps < 0 or mlp_layers < 0 or coarse_steps < 0:
+            raise ValueError(f"bad sizes: latent={latent}, steps={message_passing_steps}, mlp_layers={mlp_layers}, "
+                             f"coarse_steps={coarse_steps}")
         self.edge_set_names = tuple(edge_in)
         self.latent = latent
         self.node_encoder = make_mlp(node_in, latent, latent, mlp_layers)
         self.edge_encoders = nn.ModuleDict({n: make_mlp(f, latent, latent, mlp_layers) for n, f in edge_in.items()})
         self.processor = nn.ModuleList(
             GraphNetBlock(latent, mlp_layers, self.edge_set_names) for _ in range(message_passing_steps))
+        # With a coarse level, it runs after the first half of the fine blocks (rounded up): the fine blocks before
+        # it bring the tool's world edges into the node latents, those after it spread the result locally.
+        self.coarse = CoarseLevel(coarse_edge_in, latent, coarse_steps, mlp_layers) if coarse_steps else None
+        self.coarse_after = (message_passing_steps + 1) // 2
         self.decoder = make_mlp(latent, latent, out_size, mlp_layers, layer_norm=False)
 
     def encode(self, graph: MultiGraph) -> MultiGraph:
@@ -137,18 +186,22 @@ class EncodeProcessDecode(nn.Module):
                  for n in self.edge_set_names}
         return MultiGraph(self.node_encoder(graph.node_features), edges)
 
-    def process(self, latent_graph: MultiGraph) -> MultiGraph:
-        """Apply the message-passing blocks in order."""
-        for block in self.processor:
+    def process(self, latent_graph: MultiGraph, pooling: Pooling | None = None) -> MultiGraph:
+        """Apply the message-passing blocks in order (and the coarse level, given its ``pooling``)."""
+        for i, block in enumerate(self.processor):
+            if i == self.coarse_after and self.coarse is not None:
+                latent_graph = replace(latent_graph, node_features=self.coarse(latent_graph.node_features, pooling))
             latent_graph = block(latent_graph)
+        if self.coarse is not None and self.coarse_after >= len(self.processor):
+            latent_graph = replace(latent_graph, node_features=self.coarse(latent_graph.node_features, pooling))
         return latent_graph
 
     def decode(self, node_latents: torch.Tensor) -> torch.Tensor:
         """Node latents [N,latent] (processor output, or random z for L_compact) -> outputs [N,out]."""
         return self.decoder(node_latents)
 
-    def forward(self, graph: MultiGraph, return_latents: bool = False):
+    def forward(self, graph: MultiGraph, return_latents: bool = False, pooling: Pooling | None = None):
         """Outputs [N,out]; with ``return_latents`` also the final processor node latents [N,latent]."""
-        latents = self.process(self.encode(graph)).node_features
+        latents = self.process(self.encode(graph), pooling).node_features
         out = self.decode(latents)
         return (out, latents) if return_latents else out

@@ -87,6 +87,7 @@ class GraphInputs:
     mesh: EdgeSet                   # features [E,8]
     world: EdgeSet                  # features [2W,4]; first W edges tool->object, then object->tool
     num_object_nodes: int
+    coarse: EdgeSet | None = None   # features [Ec,8] between cluster centres (models with a coarse level)
 
     @property
     def num_world_pairs(self) -> int:
@@ -267,20 +268,88 @@ def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor
     return GraphInputs(node_features, EdgeSet(mesh_feat, s, r), EdgeSet(world_feat, w_send, w_recv), n)
 
 
-def lift_to_mesh(template: GraphTemplate, x_graph: np.ndarray) -> np.ndarray:
+def lift_to_mesh(template: GraphTemplate, x_graph: np.ndarray, rest: np.ndarray | None = None) -> np.ndarray:
     """Object graph-node positions [N,3] -> every mesh vertex [N_mesh,3].
 
     With all vertices in the graph this is a reorder. Surface-only: interior
     vertices get the inverse-distance-weighted rest-frame displacement of their
     ``k`` nearest surface nodes (only interior vertices move this way; they are
-    not part of any contact or output face).
+    not part of any contact or output face). ``rest`` [N_mesh,3]: the rest shape the displacements refer to
+    (default the template's, the mesh file's; the runtime passes the settled rest).
     """
     x_graph = np.asarray(x_graph)
-    rest_all = template.mesh_rest_vertices
+    rest_all = template.mesh_rest_vertices if rest is None else np.asarray(rest)
     out = np.empty((rest_all.shape[0], 3), dtype=x_graph.dtype)
     out[template.object_nodes] = x_graph
     if template.interior_ids is not None:
-        disp = x_graph - template.rest.numpy()
+        disp = x_graph - rest_all[template.object_nodes]
         out[template.interior_ids] = rest_all[template.interior_ids] + np.einsum(
             "ik,ikc->ic", template.interior_weights, disp[template.interior_neighbours])
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class CoarseTemplate:
+    """The constant part of a coarse level: clusters of the object graph nodes and the edges between them.
+
+    Clusters: ``K`` centres by farthest-point sampling of the rest nodes, each node in the cluster of its
+    nearest centre. Two clusters are joined when a mesh edge joins them, so coarse edges follow the surface
+    (never across a gap between two parts of the object, e.g. a bunny's ears).
+    """
+
+    assign: torch.Tensor           # [N] int64 cluster of each object graph node
+    inverse_counts: torch.Tensor   # [K,1] float64 1 / cluster size
+    senders: torch.Tensor          # [Ec] int64 cluster ids, both directions
+    receivers: torch.Tensor        # [Ec] int64
+    rest_features: torch.Tensor    # [Ec,4] float64 rest displacement between cluster centres and its norm
+
+    @property
+    def num_clusters(self) -> int:
+        return int(self.inverse_counts.shape[0])
+
+
+def farthest_points(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices [k] of ``k`` points of [N,3] picked by farthest-point sampling, starting at the point farthest from
+    the centroid (deterministic)."""
+    k = min(int(k), points.shape[0])
+    chosen = np.empty(k, dtype=np.int64)
+    chosen[0] = int(np.argmax(np.linalg.norm(points - points.mean(0), axis=1)))
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for i in range(1, k):
+        chosen[i] = int(np.argmax(dist))
+        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[i]], axis=1))
+    return chosen
+
+
+def coarse_template(template: GraphTemplate, num_clusters: int) -> CoarseTemplate:
+    """A :class:`CoarseTemplate` with ``num_clusters`` clusters over ``template``'s object nodes."""
+    rest = template.rest.numpy()
+    centres = farthest_points(rest, num_clusters)
+    _, assign = cKDTree(rest[centres]).query(rest)
+    assign = assign.astype(np.int64)
+    k = centres.shape[0]
+    counts = np.bincount(assign, minlength=k).astype(np.float64)
+    pairs = np.stack([assign[template.mesh_senders.numpy()], assign[template.mesh_receivers.numpy()]], axis=1)
+    pairs = np.unique(pairs[pairs[:, 0] != pairs[:, 1]], axis=0)  # mesh edges come in both directions already
+    mean_rest = np.zeros((k, 3))
+    np.add.at(mean_rest, assign, rest)
+    mean_rest /= counts[:, None]
+    d = mean_rest[pairs[:, 0]] - mean_rest[pairs[:, 1]]
+    return CoarseTemplate(
+        assign=torch.from_numpy(assign),
+        inverse_counts=torch.from_numpy(1.0 / counts[:, None]),
+        senders=torch.from_numpy(pairs[:, 0].copy()),
+        receivers=torch.from_numpy(pairs[:, 1].copy()),
+        rest_features=torch.from_numpy(np.concatenate([d, np.linalg.norm(d, axis=1, keepdims=True)], axis=1)),
+    )
+
+
+def coarse_edges(coarse: CoarseTemplate, x_t: torch.Tensor) -> EdgeSet:
+    """Coarse edge features [Ec,8] at positions ``x_t`` [N,3]: ``[c_s - c_r, |c_s - c_r|, rest, |rest|]`` with
+    ``c`` the cluster centres (mean node positions), as the mesh edges' features."""
+    centres = x_t.new_zeros((coarse.num_clusters, 3)).index_add_(0, coarse.assign, x_t)
+    centres = centres * coarse.inverse_counts.to(x_t.dtype)
+    d = centres[coarse.senders] - centres[coarse.receivers]
+    feats = torch.cat([d, torch.linalg.vector_norm(d, dim=1, keepdim=True), coarse.rest_features.to(x_t.dtype)],
+                      dim=1)
+    return EdgeSet(feats, coarse.senders, coarse.receivers)

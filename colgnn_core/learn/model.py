@@ -18,16 +18,16 @@ no-compact); only the losses the training loop adds differ.
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 import torch
 from torch import nn
 
 from colgnn_core.errors import InputError
-from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph
+from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, Pooling
 from colgnn_core.learn.graph import (MESH_EDGE_FEATURES, WORLD_EDGE_FEATURES, GraphInputs, GraphTemplate,
-                                     build_graph)
+                                     build_graph, coarse_edges, coarse_template)
 from colgnn_core.learn.normalizer import Normalizer
 
 EDGE_SETS = {"mesh": MESH_EDGE_FEATURES, "world": WORLD_EDGE_FEATURES}
@@ -44,6 +44,11 @@ class ModelConfig:
     surface_only: bool = False
     noise_std: float = 0.0            # training noise on x_t (m)
     noise_gamma: float = 0.1          # fraction of the noise the target does NOT follow back
+    order: int = 2                    # what the network gives: 2 the acceleration (MGN), 1 the velocity
+                                      # x_{t+1} - x_t, 0 the displacement from rest x_{t+1} - X (quasi-static)
+    rest_feature: bool = False        # node feature: displacement from the rest shape x_t - X (0 for tool nodes)
+    coarse_nodes: int = 0             # clusters of a coarse level (0: none)
+    coarse_steps: int = 0             # message-passing steps on the coarse level
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -115,43 +120,91 @@ class Simulator(nn.Module):
         super().__init__()
         self.template = template
         self.config = config
-        self.node_normalizer = Normalizer(template.node_feature_size)
-        self.edge_normalizers = nn.ModuleDict({name: Normalizer(size) for name, size in EDGE_SETS.items()})
+        if config.order not in (0, 1, 2):
+            raise InputError(f"model order must be 0, 1 or 2, got {config.order}")
+        if (config.coarse_nodes > 0) != (config.coarse_steps > 0):
+            raise InputError("coarse_nodes and coarse_steps must both be > 0 (a coarse level) or both 0")
+        node_in = template.node_feature_size + (3 if config.rest_feature else 0)
+        self.coarse = coarse_template(template, config.coarse_nodes) if config.coarse_nodes else None
+        self.node_normalizer = Normalizer(node_in)
+        edge_sets = dict(EDGE_SETS, **({"coarse": MESH_EDGE_FEATURES} if self.coarse is not None else {}))
+        self.edge_normalizers = nn.ModuleDict({name: Normalizer(size) for name, size in edge_sets.items()})
         self.output_normalizer = Normalizer(3)
-        self.core = EncodeProcessDecode(template.node_feature_size, EDGE_SETS, 3, latent=config.latent,
+        if self.has_settled_rest:
+            # The settled rest [N,3] (frame 0 of the training data: the object under gravity), stored with the
+            # weights: the quasi-static output and the rest feature are displacements from it, not from the mesh
+            # file (whose sag under gravity would otherwise dominate both).
+            self.register_buffer("settled_rest", template.rest.clone())
+        self.core = EncodeProcessDecode(node_in, EDGE_SETS, 3, latent=config.latent,
                                         message_passing_steps=config.message_passing_steps,
-                                        mlp_layers=config.mlp_layers)
+                                        mlp_layers=config.mlp_layers, coarse_edge_in=MESH_EDGE_FEATURES,
+                                        coarse_steps=config.coarse_steps)
 
     # -- pieces -----------------------------------------------------------------------------------------------
-    def build_graph(self, frame: Frame) -> GraphInputs:
-        return build_graph(self.template, frame.x_t, frame.x_prev, frame.tool_t, frame.tool_next, frame.pose_next)
+    @property
+    def has_settled_rest(self) -> bool:
+        return self.config.order == 0 or self.config.rest_feature
 
-    def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> MultiGraph:
-        """Normalise raw features (optionally accumulating statistics) and cast to the network's float32."""
+    def set_settled_rest(self, rest_graph) -> None:
+        """Set the settled rest [N,3] (m) that order-0 outputs and the rest feature refer to."""
+        rest = torch.as_tensor(rest_graph, dtype=torch.float64)
+        if rest.shape != self.settled_rest.shape:
+            raise InputError(f"settled rest must be {tuple(self.settled_rest.shape)}, got {tuple(rest.shape)}")
+        self.settled_rest.copy_(rest)
+
+    def build_graph(self, frame: Frame) -> GraphInputs:
+        g = build_graph(self.template, frame.x_t, frame.x_prev, frame.tool_t, frame.tool_next, frame.pose_next)
+        if self.config.rest_feature:
+            rest = torch.cat([frame.x_t - self.settled_rest.to(frame.x_t.dtype),
+                              frame.x_t.new_zeros((self.template.num_tool_nodes, 3))], dim=0)
+            g = replace(g, node_features=torch.cat([g.node_features[:, :3], rest, g.node_features[:, 3:]], dim=1))
+        if self.coarse is not None:
+            g = replace(g, coarse=coarse_edges(self.coarse, frame.x_t))
+        return g
+
+    def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> tuple[MultiGraph, Pooling | None]:
+        """Normalise raw features (optionally accumulating statistics) and cast to the network's float32.
+
+        Returns the fine graph and, for a model with a coarse level, its pooling (normalised coarse edges)."""
         nodes = self.node_normalizer(g.node_features, accumulate).float()
         edges = {}
         for name, es in (("mesh", g.mesh), ("world", g.world)):
             feats = self.edge_normalizers[name](es.features, accumulate).float()
             edges[name] = EdgeSet(feats, es.senders, es.receivers)
-        return MultiGraph(nodes, edges)
+        pooling = None
+        if self.coarse is not None:
+            feats = self.edge_normalizers["coarse"](g.coarse.features, accumulate).float()
+            pooling = Pooling(self.coarse.assign, self.coarse.inverse_counts.float(),
+                              EdgeSet(feats, g.coarse.senders, g.coarse.receivers))
+        return MultiGraph(nodes, edges), pooling
 
     def network(self, g: GraphInputs, accumulate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-        """Normalised acceleration [N,3] and final processor latents [N,latent] of the object nodes."""
-        return self.core_outputs(self.normalise_graph(g, accumulate), g.num_object_nodes)
+        """Normalised output (acceleration or velocity) [N,3] and final processor latents [N,latent] of the
+        object nodes."""
+        graph, pooling = self.normalise_graph(g, accumulate)
+        return self.core_outputs(graph, g.num_object_nodes, pooling)
 
-    def core_outputs(self, graph: MultiGraph, num_object_nodes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def core_outputs(self, graph: MultiGraph, num_object_nodes: int,
+                     pooling: Pooling | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Encode-process-decode a normalised graph: (outputs, final latents) of the object nodes."""
-        latent_graph = self.core.process(self.core.encode(graph))
+        latent_graph = self.core.process(self.core.encode(graph), pooling)
         latents = latent_graph.node_features[:num_object_nodes]  # tool nodes need no decoding
         return self.core.decode(latents), latents
 
     def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
-        """De-normalise the acceleration and step: ``x_{t+1} = 2 x_t - x_{t-1} + a``; pinned nodes keep x_t."""
-        accel = self.output_normalizer.inverse(pred_norm.to(x_t.dtype))
-        x_next = 2.0 * x_t - x_prev + accel
+        """De-normalise the output and step: ``x_{t+1} = 2 x_t - x_{t-1} + a`` (order 2), ``x_t + v`` (order 1) or
+        ``X + u`` (order 0, X the settled rest); pinned nodes keep x_t."""
+        out = self.output_normalizer.inverse(pred_norm.to(x_t.dtype))
+        x_next = self._base(x_t, x_prev) + out
         if self.template.num_node_types == 3:
             x_next = torch.where(self.template.pinned[:, None], x_t, x_next)
         return x_next
+
+    def _base(self, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
+        """What the network's output is added to: 2 x_t - x_{t-1}, x_t or the rest X (order 2, 1, 0)."""
+        if self.config.order == 0:
+            return self.settled_rest.to(x_t.dtype)
+        return x_t if self.config.order == 1 else 2.0 * x_t - x_prev
 
     def decode_latent(self, z: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
         """Positions at t+1 decoded from latents ``z`` [N,latent] instead of the processor's (L_compact)."""
@@ -190,7 +243,7 @@ class Simulator(nn.Module):
         noisy = Frame(frame.x_prev, x_t, frame.tool_t, frame.tool_next, frame.pose_next)
         g = self.build_graph(noisy)
         pred_norm, latents = self.network(g, accumulate=accumulate)
-        target_accel = target_pos - 2.0 * x_t + frame.x_prev
+        target_accel = target_pos - self._base(x_t, frame.x_prev)
         if accumulate:
             self.output_normalizer.accumulate(target_accel[free])
         target_norm = self.output_normalizer(target_accel).float()

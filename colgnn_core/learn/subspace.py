@@ -33,7 +33,8 @@ from colgnn_core.learn.core_model import make_mlp
 from colgnn_core.learn.data import FrameDataset
 from colgnn_core.learn.graph import GraphTemplate, template_from_scene
 from colgnn_core.learn.normalizer import Normalizer
-from colgnn_core.learn.training_common import GeometricDecay, TrainResult, data_stats, read_resumable
+from colgnn_core.learn.training_common import (GeometricDecay, TrainResult, data_stats, domain_extra,
+                                              read_resumable)
 
 TOOL_FEATURES = 12  # centroid (3), displacement (3), rotation columns x and z (6)
 RESUME_KEYS = ("steps", "batch", "lr_init", "lr_final", "variance_kept")  # the run's settings in a checkpoint
@@ -238,6 +239,6 @@ def train_subspace(scene, data_dir, out_ckpt, resume: bool = False, steps: int |
     save_checkpoint(out_ckpt, model, meta, optimizer=opt, scheduler=sched,
                     extra={"steps": total, "batch": batch, "lr_init": lr_init, "lr_final": lr_final, "seed": seed,
                            "variance_kept": kept, "data_dir": str(data_dir),
-                           "data_stats": data_stats(ds, model.template)})
+                           "data_stats": data_stats(ds, model.template), **domain_extra(ds, seed)})
     return TrainResult(str(out_ckpt), end, total, time.perf_counter() - t0, "done" if end == total else "stop_after",
                        history[-1] if history else {}, history, model)

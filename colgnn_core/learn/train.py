@@ -46,7 +46,8 @@ from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.losses import REDUCTIONS, kl_latent, loss_ccd, loss_q, xi_random
 from colgnn_core.learn.model import ModelConfig, Simulator
 from colgnn_core.learn.subspace import train_subspace
-from colgnn_core.learn.training_common import GeometricDecay, TrainResult, data_stats, read_resumable
+from colgnn_core.learn.training_common import (GeometricDecay, TrainResult, data_stats, domain_extra,
+                                              read_resumable)
 from colgnn_core.scenes import load_scene
 
 VARIANTS = ("full", "baseline", "no-compact", "subspace")
@@ -249,6 +250,8 @@ def _fresh_model(scene, dataset: FrameDataset, config: TrainConfig | None, steps
     mcfg = ModelConfig.from_scene(scene, **{**cfg.model, "noise_std": float(noise)})
     torch.manual_seed(seed)  # identical initial weights on every rank
     sim = Simulator(template, mcfg)
+    if sim.has_settled_rest:  # the quasi-static output and the rest feature refer to the ground truth's frame 0
+        sim.set_settled_rest(dataset.sequences[0].object_positions[0][template.object_nodes])
     return _Model(cfg, template, sim, *_optimizer(sim, cfg))
 
 
@@ -308,7 +311,8 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
                                  template.num_tool_nodes, tool=scene.tool)
     extra = {"train_config": cfg.to_dict(), "seed": int(seed), "data_dir": str(data_dir),
              "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
-             "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template)}
+             "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template),
+             **domain_extra(dataset, seed)}
     return _Run(scene, variant, seed, out_ckpt, dataset, dist_, model, detector, variant_weights(variant, cfg),
                 delta=float(cfg.compact_threshold if cfg.compact_threshold is not None else scene.dhat),
                 opt_total=max(cfg.steps - cfg.warmup_steps, 1), free=~template.pinned,

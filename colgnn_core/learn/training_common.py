@@ -13,6 +13,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from colgnn_core.errors import InputError
@@ -44,6 +45,28 @@ class TrainResult:
     last: dict[str, float]    # last logged loss terms (rank average)
     history: list[dict]       # logged rows (step, loss terms, lr)
     simulator: torch.nn.Module | None = None  # the trained model (this rank's copy)
+
+
+DOMAIN_POSES = 4096  # training tool positions a checkpoint keeps for the Predictor's domain check (subsampled)
+
+
+def domain_extra(dataset: FrameDataset, seed: int = 0) -> dict:
+    """What the runtime needs to know of the training data, for a checkpoint's ``extra``.
+
+    ``settled_rest`` [N_mesh,3] float64: frame 0 of the first training sequence, the rest shape the ground truth
+    settles to under gravity before any tool moves (the Predictor starts from it and relaxes toward it);
+    ``domain_tool_positions`` [K,3] float32: the tool positions of the training frames (at most DOMAIN_POSES, a
+    seeded subsample); ``domain_max_deviation`` (m): the largest distance of a mesh vertex from the settled rest
+    in the training data.
+    """
+    rest = np.asarray(dataset.sequences[0].object_positions[0], dtype=np.float64)
+    poses = np.concatenate([s.tool_poses[:, :3] for s in dataset.sequences])
+    if len(poses) > DOMAIN_POSES:
+        poses = poses[np.random.default_rng(seed).choice(len(poses), DOMAIN_POSES, replace=False)]
+    deviation = max(float(np.linalg.norm(s.object_positions - rest, axis=2).max()) for s in dataset.sequences)
+    return {"settled_rest": torch.from_numpy(rest.copy()),
+            "domain_tool_positions": torch.from_numpy(poses.astype(np.float32)),
+            "domain_max_deviation": deviation}
 
 
 def data_stats(dataset: FrameDataset, template) -> dict[str, float]:

@@ -8,7 +8,11 @@ the training data the checkpoint records (:func:`output_limits`).
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
+import torch
 
 from colgnn_core.errors import InputError
 from colgnn_core.learn.checkpoint import LoadedCheckpoint
@@ -67,3 +71,34 @@ def output_limits(loaded: LoadedCheckpoint, limits: str, max_displacement: float
         if max_deviation is None:
             max_deviation = DATA_DEVIATION_FACTOR * float(stats["max_deviation"])
     return max_displacement, max_deviation
+
+
+def settled_rest(loaded: LoadedCheckpoint, scene) -> np.ndarray:
+    """[N_mesh,3] the rest shape the model's ground truth starts from: the object settled under gravity (frame 0 of
+    its training data, recorded in the checkpoint). Checkpoints that predate the record give the scene's mesh."""
+    rest = (loaded.extra or {}).get("settled_rest")
+    mesh = np.asarray(scene.object.vertices, dtype=np.float64)
+    if rest is None or tuple(rest.shape) != mesh.shape:
+        return mesh.copy()
+    return np.asarray(rest, dtype=np.float64).copy()
+
+
+class RestModel:
+    """The trivial model "nothing moves": every step predicts the rest graph-node positions [N,3].
+
+    Behind the Predictor it gives the ``rest + correction`` baseline: the rest shape, with only the collision-aware
+    correction acting (the tool pushes a dent, the network adds nothing)."""
+
+    def __init__(self, template, rest_graph: np.ndarray):
+        self.template = template
+        self.rest = torch.from_numpy(np.asarray(rest_graph, dtype=np.float64))
+
+    def predict(self, frame) -> torch.Tensor:
+        return self.rest.clone()
+
+
+def rest_baseline(loaded: LoadedCheckpoint, scene) -> LoadedCheckpoint:
+    """``loaded`` with its network replaced by :class:`RestModel` at the model's settled rest (same graph nodes,
+    step limits and training-data records, so the baseline runs exactly as the model would)."""
+    template = loaded.simulator.template
+    return replace(loaded, simulator=RestModel(template, settled_rest(loaded, scene)[template.object_nodes]))

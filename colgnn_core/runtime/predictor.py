@@ -49,7 +49,7 @@ from colgnn_core.geometry.transforms import interpolate_poses
 from colgnn_core.learn.core_model import EdgeSet
 from colgnn_core.learn.graph import GraphInputs, lift_to_mesh
 from colgnn_core.learn.model import Frame
-from colgnn_core.runtime.models import model_and_scene, output_limits
+from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.stepper import RawStepper
 from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
@@ -67,6 +67,12 @@ SETTLE_RAMP_STEPS = 100
 EASE_PEAK = 1.5            # trajectories.py eases every move with a smoothstep: peak speed 1.5x the mean
 MIN_ROTATION_STEP = math.radians(2.0)  # floor of the per-step rotation limit (families without tilt)
 TRIM_EVERY = 200           # model steps between returns of freed heap memory to the OS (see _release_memory)
+# The domain check (Predictor.outside_domain): a model step is outside the training domain when the tool is within the
+# network's reach (world edges) yet farther than DOMAIN_RADIUS_FACTOR x r_W from every training tool position, or
+# when the object is farther from its settled rest than DOMAIN_DEVIATION_FACTOR x the training data's largest
+# deviation. The output is still published (and corrected): the flag tells the user not to trust its shape.
+DOMAIN_RADIUS_FACTOR = 2.0
+DOMAIN_DEVIATION_FACTOR = 1.25
 COUNT_LABELS = ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
                 "penetrating_vertices_after", "correction_iterations", "fallback", "substeps")
 
@@ -101,6 +107,7 @@ class StepResult:
     fallback: bool = False
     substeps: int = 1
     published_moved: int = 0
+    out_of_domain: int = 0     # model steps of this call outside the training domain (Predictor.outside_domain)
     timings_ms: dict = field(default_factory=dict)
 
     @property
@@ -124,6 +131,7 @@ class PredictorState:
     fallbacks: int = 0         # steps whose correction used the fallback since reset
     relaxed_steps: int = 0     # model steps relaxed towards rest since reset
     free_steps: int = 0        # consecutive released model steps (the settle ramp's clock; see Predictor._released)
+    out_of_domain: int = 0     # model steps outside the training domain since reset
 
 
 @lru_cache(maxsize=None)
@@ -229,8 +237,17 @@ class Predictor:
                                                    else (float(step_limits[0]), float(step_limits[1])))
         if not (self.max_translation > 0 and self.max_rotation > 0):
             raise InputError(f"step limits must be > 0, got {self.max_translation} m, {self.max_rotation} rad")
-        self.net = RawStepper(self.model, scene, max_displacement, max_deviation)  # the network step and its state
         tpl = self.template
+        # One rest state: the settled shape the ground truth starts from (start, relaxation and caps refer to it).
+        self.rest_mesh = settled_rest(loaded, scene)
+        self.net = RawStepper(self.model, scene, max_displacement, max_deviation,  # the network step and its state
+                              rest_mesh=self.rest_mesh)
+        extra = loaded.extra or {}
+        poses = extra.get("domain_tool_positions")
+        self._domain_tree = cKDTree(np.asarray(poses, dtype=np.float64)) if poses is not None else None
+        self.domain_radius = DOMAIN_RADIUS_FACTOR * float(tpl.world_radius)
+        dev = extra.get("domain_max_deviation")
+        self.domain_deviation = DOMAIN_DEVIATION_FACTOR * float(dev) if dev is not None else None
         self.surface_faces = np.asarray(scene.object.faces, dtype=np.int64)
         self.surface_vertex_ids = np.unique(self.surface_faces)
         self.tool_faces = np.asarray(scene.tool.faces, dtype=np.int64)
@@ -274,10 +291,10 @@ class Predictor:
 
     # -- state ----------------------------------------------------------------------------------------------------
     def reset(self, positions: np.ndarray | None = None, tool_pose: np.ndarray | None = None) -> None:
-        """Object at rest (or ``positions`` [N_mesh,3]) and at rest velocity; tool at its rest pose (or
+        """Object at its settled rest (or ``positions`` [N_mesh,3]) and at rest velocity; tool at its rest pose (or
         ``tool_pose``)."""
         n_mesh = self.scene.object.vertices.shape[0]
-        x0 = np.asarray(self.scene.object.vertices if positions is None else positions, dtype=np.float64)
+        x0 = np.asarray(self.rest_mesh if positions is None else positions, dtype=np.float64)
         if x0.shape != (n_mesh, 3) or not np.all(np.isfinite(x0)):
             raise InputError(f"positions must be a finite [{n_mesh},3] array, got shape {x0.shape}")
         pose = self.scene.tool_rest_pose if tool_pose is None else tool_pose
@@ -430,8 +447,11 @@ class Predictor:
             x_next = torch.from_numpy(c.positions)
         else:
             x_next = x_raw
+        outside = self.outside_domain(pose_next, x_next)
+        res.out_of_domain += int(outside)
         net.commit(x_next, tool_next, pose_next)
-        self.state = replace(st, tool_vertices=tool_next_np, steps=st.steps + 1, fallbacks=fallbacks)
+        self.state = replace(st, tool_vertices=tool_next_np, steps=st.steps + 1, fallbacks=fallbacks,
+                             out_of_domain=st.out_of_domain + int(outside))
         self._since_trim += 1
         if self._since_trim >= TRIM_EVERY:
             self._since_trim = 0
@@ -451,6 +471,19 @@ class Predictor:
         d, _ = self._rest_tree.query(tool_next, distance_upper_bound=self.template.world_radius)
         return bool(np.isinf(d).all())
 
+    def outside_domain(self, pose_next: np.ndarray, x_next: torch.Tensor) -> bool:
+        """Is this model step outside what the model was trained on? (See DOMAIN_RADIUS_FACTOR.) The tool pose
+        counts only while it is within the network's reach (world edges): far from the object any pose is fine.
+        Checkpoints without the training-data record are never flagged."""
+        if self._domain_tree is not None and self.net.world_edges != 0:
+            d, _ = self._domain_tree.query(pose_next[:3], distance_upper_bound=self.domain_radius)
+            if np.isinf(d):
+                return True
+        if self.domain_deviation is not None:
+            dev = torch.linalg.vector_norm(x_next - self.net.rest, dim=1).max()
+            return bool(dev > self.domain_deviation)
+        return False
+
     def relaxation_rate(self) -> float:
         """This step's rest-relaxation fraction: ``rest_relaxation``, ramping to 1 once the tool has been out of
         reach for ``SETTLE_AFTER_STEPS`` model steps (0 when the relaxation is off)."""
@@ -462,7 +495,7 @@ class Predictor:
     def lift(self, x_graph: np.ndarray, res: StepResult | None = None) -> np.ndarray:
         """Graph-node positions [N,3] -> every mesh vertex [N_mesh,3] (:func:`lift_to_mesh`); with the correction,
         interior vertices inside the tool at the current pose are moved out (counted in ``res.interior_cleared``)."""
-        mesh = lift_to_mesh(self.template, x_graph)
+        mesh = lift_to_mesh(self.template, x_graph, self.rest_mesh)
         ids = self.template.interior_ids
         if self.corrector is not None and ids is not None:
             inner = mesh[ids]
@@ -491,12 +524,13 @@ class PredictorStepper:
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
         p = self.predictor
         # Interior vertices of a surface-only model are not state: lift them from the nodes.
-        p.reset(lift_to_mesh(p.template, np.asarray(x0_graph, dtype=np.float64)), pose0)
+        p.reset(lift_to_mesh(p.template, np.asarray(x0_graph, dtype=np.float64), p.rest_mesh), pose0)
         self.records = []
 
     def step(self, pose_next: np.ndarray) -> np.ndarray:
         r = self.predictor.step(pose_next)
         rec = r.collision_counts()
+        rec["out_of_domain"] = r.out_of_domain
         rec.update({f"{k}_ms": v for k, v in r.timings_ms.items()})
         self.records.append(rec)
         return self.predictor.graph_positions

@@ -14,7 +14,7 @@ import numpy as np
 
 from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
-from colgnn_core.runtime.models import model_and_scene, output_limits
+from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.predictor import Predictor
 from colgnn_core.runtime.stepper import RawStepper, run_stepper
 
@@ -32,7 +32,8 @@ def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *,
         correction: collision-aware correction: the rollout goes through the Predictor
             (large pose jumps subdivided; per-frame counts and stage timings added to ``extra``).
         scene: the Scene (default: the one the checkpoint names, at its resolution).
-        initial_positions: [N_mesh,3] object vertices at frame 0 (default: the scene's rest mesh).
+        initial_positions: [N_mesh,3] object vertices at frame 0 (default: the model's settled rest,
+            :func:`colgnn_core.runtime.models.settled_rest`, the state the ground truth starts from).
         limits: 'none' (the raw network, nothing capped) or 'data': caps derived from the training data the
             checkpoint records (:func:`colgnn_core.runtime.models.output_limits`).
         max_displacement: explicit cap (m) on any node's displacement per step (overrides ``limits``).
@@ -51,11 +52,14 @@ def rollout(checkpoint_or_scene, poses: np.ndarray, correction: bool = False, *,
     if poses is None or len(poses) < 1:
         raise InputError("poses must have at least one row (frame 0)")
     max_displacement, max_deviation = output_limits(loaded, limits, max_displacement, max_deviation)
+    rest = settled_rest(loaded, scene)
+    if initial_positions is None:
+        initial_positions = rest
     if correction:
         stepper = Predictor(loaded, scene, correction=True, threads=None, max_displacement=max_displacement,
                             max_deviation=max_deviation, **(predictor_options or {})).stepper()
         seq = run_stepper(stepper, scene, poses, initial_positions, progress)
         seq.extra.update(stepper.extra())
         return seq
-    stepper = RawStepper(loaded.simulator, scene, max_displacement, max_deviation)
+    stepper = RawStepper(loaded.simulator, scene, max_displacement, max_deviation, rest_mesh=rest)
     return run_stepper(stepper, scene, poses, initial_positions, progress)

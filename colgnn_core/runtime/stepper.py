@@ -64,7 +64,8 @@ class StepperState:
 class RawStepper:
     """The network alone: x_{t+1} = model(x_t, x_{t-1}, tool at t and t+1), optionally displacement-capped."""
 
-    def __init__(self, model, scene, max_displacement: float | None = None, max_deviation: float | None = None):
+    def __init__(self, model, scene, max_displacement: float | None = None, max_deviation: float | None = None,
+                 rest_mesh: np.ndarray | None = None):
         for name, v in (("max_displacement", max_displacement), ("max_deviation", max_deviation)):
             if v is not None and not v > 0:
                 raise InputError(f"{name} must be > 0 (m), got {v}")
@@ -73,7 +74,12 @@ class RawStepper:
         self.template = model.template
         self.max_displacement = max_displacement
         self.max_deviation = max_deviation
-        self.rest = self.template.rest.clone()
+        # The rest shape [N_mesh,3] that the deviation cap, the lifting of interior vertices and the Predictor's rest
+        # relaxation refer to: default the mesh file's; the runtime passes the settled rest the ground truth starts
+        # from. ``rest`` [N,3] is its graph nodes.
+        self.rest_mesh = np.asarray(self.template.mesh_rest_vertices if rest_mesh is None else rest_mesh,
+                                    dtype=np.float64).copy()
+        self.rest = torch.from_numpy(self.rest_mesh[self.template.object_nodes])
         self.clamped = 0  # nodes capped in the last step
         self.state: StepperState | None = None
 
@@ -138,7 +144,7 @@ class RawStepper:
 
     def mesh(self, x_graph: np.ndarray) -> np.ndarray:
         """Every mesh vertex [N_mesh,3] from the graph nodes [N,3] (:func:`lift_to_mesh`)."""
-        return lift_to_mesh(self.template, x_graph)
+        return lift_to_mesh(self.template, x_graph, self.rest_mesh)
 
 
 def run_stepper(stepper: Stepper, scene, poses: np.ndarray, initial_positions: np.ndarray | None = None,

@@ -171,6 +171,95 @@ def _stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> None:
     _retract(scene, path, retract, along_axis=bool(fam.get("retract_along_tool_axis", False)))
 
 
+STROKE_KINDS = ("press", "drag", "plunge")
+
+
+def _coverage_target(scene: Scene, rng: np.random.Generator, depth: float, near: np.ndarray | None,
+                     orientation) -> tuple[np.ndarray, np.ndarray, float]:
+    """A target (xy [2], quat [4], contact height h) drawn uniformly over the object's tool-facing footprint.
+
+    Rejection sampling over the object's bbox in xy, inset by ``region_margin`` (within ``near_radius`` of ``near``
+    [2] when given: the next press close to the last one, so less of a sequence is spent travelling). For each
+    candidate the tool orientation comes from ``orientation(xy)``; a point is kept where the tool, lowered at that
+    orientation, meets the object and the pressed pose stays inside the workspace.
+    """
+    fam = scene.family
+    lo, hi = scene.object_bbox()
+    margin = float(fam.get("region_margin", 0.0))
+    wlo, whi = scene.workspace_min, scene.workspace_max
+    lo_xy = np.maximum(lo[:2] + margin, wlo[:2])
+    hi_xy = np.minimum(hi[:2] - margin, whi[:2])
+    if near is not None:
+        r = float(fam.get("near_radius", 0.05))
+        lo_xy, hi_xy = np.maximum(lo_xy, near - r), np.minimum(hi_xy, near + r)
+    for _ in range(200):
+        xy = rng.uniform(lo_xy, hi_xy)
+        quat = orientation(xy)
+        h = contact_height(scene, xy, quat)
+        if np.isfinite(h) and wlo[2] <= h - depth and h + _clearance(scene) <= whi[2]:
+            return xy, quat, float(h)
+    raise InputError(f"{scene.name}: no reachable target on the object's surface for the coverage family")
+
+
+def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> None:
+    """One stroke of a workspace-covering family (``family.region = "surface"``).
+
+    Kinds, drawn with ``stroke_weights`` (press, drag, plunge): a *press* anywhere on the tool-facing surface; a
+    *press-and-drag* across it (``drag`` m, at the same indentation below the local surface); a *plunge* to the
+    deepest family depth at the top speed. The first stroke aims at the family's target disk (``target_xy``,
+    ``target_jitter``: contact within the first frames), later ones anywhere. Every stroke may be tilted
+    (``tilt_deg``) and turned (``yaw_deg``, about the radial direction from the object's centre when
+    ``yaw_radial``), travels above the object at the retract height before it descends (no sweep through a raised
+    part), and ends with a retract and ``settle`` frames of waiting, so sequences show the object returning to rest.
+    """
+    fam = scene.family
+    weights = np.asarray(fam.get("stroke_weights", [0.5, 0.3, 0.2]), dtype=np.float64)
+    kind = STROKE_KINDS[int(rng.choice(len(STROKE_KINDS), p=weights / weights.sum()))]
+    top = float(np.max(fam["speed"]))
+    speed = top if kind == "plunge" else _uniform(rng, fam["speed"])
+    depth = float(np.max(fam["depth"])) if kind == "plunge" else _uniform(rng, fam["depth"])
+    tilt, azimuth, yaw = _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi), _uniform(
+        rng, fam.get("yaw_deg", 0.0))
+    centre = 0.5 * np.add(*scene.object_bbox())[:2]
+
+    def orientation(xy: np.ndarray) -> np.ndarray:
+        radial = np.degrees(np.arctan2(*(xy - centre)[::-1])) if fam.get("yaw_radial", False) else 0.0
+        return _orientation(scene, tilt, azimuth, yaw + radial)
+
+    if len(path) == 1:  # the first stroke aims at the scene's target, as the narrow family did: contact early
+        r = float(fam.get("target_jitter", 0.0)) * np.sqrt(rng.uniform())
+        phi = rng.uniform(0, 2 * np.pi)
+        xy = np.asarray(fam["target_xy"], dtype=np.float64) + r * np.array([np.cos(phi), np.sin(phi)])
+        quat = orientation(xy)
+        h = _contact_heights(scene, xy[None], quat, fallback=float(scene.tool_rest_pose[2]) - _clearance(scene))[0]
+    else:
+        near = path.last[:2] if rng.uniform() < float(fam.get("near_fraction", 0.5)) else None
+        xy, quat, h = _coverage_target(scene, rng, depth, near, orientation)
+    travel = max(float(path.last[2]), _rest_height(scene, xy))
+    if len(path) > 1 and np.linalg.norm(xy - path.last[:2]) > 1e-9:  # out of contact: at the family's top speed
+        path.move_to(np.array([path.last[0], path.last[1], travel]), path.last[3:], top)
+        path.move_to(np.array([xy[0], xy[1], travel]), quat, top)
+    path.move_to(np.array([xy[0], xy[1], h - depth]), quat, speed)
+    if kind == "drag":
+        a = rng.uniform(0, 2 * np.pi)
+        if fam.get("drift_along_tool_x", False):  # a blade slices along its edge
+            u = _horizontal_tool_x(quat)[:2]
+            a = np.arctan2(u[1], u[0]) + (np.pi if rng.uniform() < 0.5 else 0.0)
+        length = _uniform(rng, fam.get("drag", [0.02, 0.05]))
+        xy_path = xy + np.outer(_ease(_steps(length, speed)), np.array([np.cos(a), np.sin(a)]) * length)
+        z_path = _contact_heights(scene, xy_path, quat, fallback=h) - depth
+        keep = np.all((xy_path >= scene.workspace_min[:2]) & (xy_path <= scene.workspace_max[:2]), axis=1)
+        keep &= z_path >= scene.workspace_min[2]
+        stop = int(np.argmin(keep)) if not keep.all() else len(keep)
+        path.follow(np.column_stack([xy_path, z_path])[:stop], quat)
+    lo, hi = fam.get("hold", [0, 0])
+    path.hold(int(rng.integers(int(lo), int(hi) + 1)))
+    retract = speed * _uniform(rng, fam.get("retract_speed_factor", [1.0, 1.0]))
+    _retract(scene, path, retract, along_axis=bool(fam.get("retract_along_tool_axis", False)))
+    s_lo, s_hi = fam.get("settle", [0, 0])
+    path.hold(int(rng.integers(int(s_lo), int(s_hi) + 1)))
+
+
 def _retract(scene: Scene, path: _Path, speed: float, along_axis: bool) -> None:
     """Pull the tool out to the rest height keeping its orientation, then turn back to rest.
 
@@ -218,8 +307,9 @@ def sample_poses(scene: Scene, seed: int, frames: int, *, clip: bool = True) -> 
     frames = _check_frames(frames)
     rng = _rng(scene, seed)
     path = _Path(scene.tool_rest_pose)
+    stroke = _coverage_stroke if scene.family.get("region") == "surface" else _stroke
     while len(path) < frames:
-        _stroke(scene, path, rng)
+        stroke(scene, path, rng)
     return _finish(scene, path, frames, clip)
 
 

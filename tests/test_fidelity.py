@@ -1,0 +1,199 @@
+"""Fidelity pieces: the relative displacement metric, the trivial baselines, the coarse level, the quasi-static
+output, the workspace-covering families, one settled rest state and the Predictor's domain check."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from colgnn_core.evaluation.measure import contact_region, relative_displacement_error
+from colgnn_core.learn.graph import coarse_template, template_from_scene
+from colgnn_core.learn.model import Frame, ModelConfig, Simulator
+from colgnn_core.learn.registry import load_checkpoint
+from colgnn_core.runtime.models import RestModel, rest_baseline, settled_rest
+from colgnn_core.runtime.predictor import Predictor
+from colgnn_core.runtime.rollout import rollout
+from colgnn_core.scenes import load_scene
+from colgnn_core.scenes.trajectories import sample_poses, split_seeds
+from tests.helpers import train_data as fx
+
+torch.set_num_threads(1)
+
+
+# -- the metric ------------------------------------------------------------------------------------------------------
+def test_relative_displacement_error_against_a_hand_computation():
+    rest = np.zeros((2, 3))
+    truth = np.array([rest, [[1.0, 0, 0], [0, 0, 0]], [[2.0, 0, 0], [0, 2.0, 0]]])  # frames 1, 2 move
+    pred = np.array([rest, [[1.0, 0, 0], [0, 0, 1.0]], [[0.0, 0, 0], [0, 2.0, 0]]])
+    # numerator: frame 1 vertex 1 off by 1, frame 2 vertex 0 off by 2 -> sqrt(1 + 4); denominator sqrt(1 + 4 + 4)
+    assert relative_displacement_error(pred, truth, rest) == pytest.approx(np.sqrt(5.0) / 3.0, rel=1e-15)
+    # "nothing moves" scores exactly 1, the truth 0
+    still = np.repeat(rest[None], 3, axis=0)
+    assert relative_displacement_error(still, truth, rest) == 1.0
+    assert relative_displacement_error(truth, truth, rest) == 0.0
+    # one vertex: vertex 1 moves 2 (frame 2) and is off by 1 (frame 1)
+    assert relative_displacement_error(pred, truth, rest, np.array([1])) == pytest.approx(0.5, rel=1e-15)
+    # frame 0 never counts
+    pred0 = pred.copy()
+    pred0[0] += 10.0
+    assert relative_displacement_error(pred0, truth, rest) == relative_displacement_error(pred, truth, rest)
+    with pytest.raises(Exception, match="shapes"):
+        relative_displacement_error(pred[:, :1], truth, rest)
+
+
+def test_contact_region_is_the_tenth_of_the_vertices_the_truth_moves_most():
+    rest = np.zeros((20, 3))
+    truth = np.zeros((3, 20, 3))
+    truth[2, 7, 2] = -5.0   # the largest mover
+    truth[1, 3, 0] = 2.0    # the second, at another frame
+    truth[2, 11, 1] = 0.5
+    assert contact_region(truth, rest).tolist() == [3, 7]
+    assert contact_region(truth, rest, 0.15).tolist() == [11, 3, 7]
+
+
+# -- the trivial baselines ------------------------------------------------------------------------------------------
+def test_rest_plus_correction_baseline_is_the_rest_shape_pushed_out_of_the_tool():
+    scene = fx.scene()
+    loaded = load_checkpoint(fx.trained_checkpoint("full"))
+    base = rest_baseline(loaded, scene)
+    assert isinstance(base.simulator, RestModel) and base.meta == loaded.meta
+    gt = __import__("colgnn_core.io", fromlist=["load_sequence"]).load_sequence(
+        sorted(fx.dataset_dir().glob("train_*.npz"))[0])
+    x0 = gt.object_positions[0]
+    raw = rollout(base, gt.tool_poses, scene=scene, initial_positions=x0)
+    # without the correction nothing moves at all: the "rest" baseline, error exactly 1
+    np.testing.assert_array_equal(raw.object_positions, np.repeat(settled_rest(loaded, scene)[None], gt.frames, 0))
+    fixed = rollout(base, gt.tool_poses, correction=True, scene=scene, initial_positions=x0)
+    moved = np.linalg.norm(fixed.object_positions - raw.object_positions, axis=2).max(axis=1)
+    contact = gt.extra["min_distance"] < float(gt.extra["dmin"]) + 2 * scene.dhat  # frames where the tool presses
+    assert contact.any() and moved[contact].max() > 1e-4       # the correction pushes a dent ...
+    assert moved[0] == 0.0 and np.isfinite(fixed.object_positions).all()
+    err = relative_displacement_error(fixed.object_positions, gt.object_positions, x0)
+    assert 0.0 < err < 2.0
+
+
+def test_evaluate_reports_the_baselines_next_to_the_model():
+    from colgnn_core.evaluation.accuracy import evaluate
+
+    res = evaluate(fx.SCENE, checkpoint=fx.trained_checkpoint("full"), data_dir=fx.dataset_dir(),
+                   out_dir=fx.tmp_dir("evaluate-relative"), progress=False, exact=False)
+    rel = res["relative"]
+    assert set(rel) == {"raw", "corrected", "node", "rest", "rest_correction"}
+    assert rel["rest"]["all"]["mean"] == 1.0 and rel["rest"]["contact"]["mean"] == 1.0
+    for row in rel.values():
+        assert np.isfinite(row["all"]["mean"]) and np.isfinite(row["contact"]["mean"])
+    md = (fx.tmp_dir("evaluate-relative") / "metrics.md").read_text()
+    assert "| rest + correction (no network) |" in md and "Relative displacement error" in md
+
+
+# -- the model ------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def bunny():
+    return load_scene("cone_bunny", "ci")
+
+
+def test_coarse_clusters_cover_every_node_and_follow_the_mesh(bunny):
+    tpl = template_from_scene(bunny, surface_only=True)
+    c = coarse_template(tpl, 24)
+    assert c.num_clusters == 24 and c.assign.shape[0] == tpl.num_object_nodes
+    assert set(c.assign.tolist()) == set(range(24))
+    assert torch.allclose(1.0 / c.inverse_counts[:, 0], torch.bincount(c.assign, minlength=24).double())
+    pairs = set(zip(c.senders.tolist(), c.receivers.tolist()))
+    assert pairs and all((b, a) in pairs for a, b in pairs) and all(a != b for a, b in pairs)
+    # every coarse edge is backed by a mesh edge between its two clusters
+    mesh = set(zip(c.assign[tpl.mesh_senders].tolist(), c.assign[tpl.mesh_receivers].tolist()))
+    assert pairs <= mesh
+
+
+def _hops(tpl, source: int) -> np.ndarray:
+    n = tpl.num_object_nodes
+    hops = np.full(n, -1)
+    hops[source] = 0
+    frontier = [source]
+    s, r = tpl.mesh_senders.numpy(), tpl.mesh_receivers.numpy()
+    while frontier:
+        nxt = np.unique(r[np.isin(s, frontier)])
+        nxt = nxt[hops[nxt] < 0]
+        hops[nxt] = hops[frontier[0]] + 1
+        frontier = nxt.tolist()
+    return hops
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_the_coarse_level_carries_information_beyond_the_message_passing_hops(bunny, coarse):
+    tpl = template_from_scene(bunny, surface_only=True)
+    cfg = ModelConfig(latent=8, message_passing_steps=2, mlp_layers=1, world_radius=0.01, surface_only=True,
+                      coarse_nodes=16 if coarse else 0, coarse_steps=4 if coarse else 0)
+    torch.manual_seed(0)
+    sim = Simulator(tpl, cfg).eval()
+    x = tpl.rest.clone()
+    tool = torch.from_numpy(bunny.tool.world_vertices(bunny.tool_rest_pose))
+    hops = _hops(tpl, 0)
+    beyond = (hops > cfg.message_passing_steps) & ~tpl.pinned.numpy()  # free nodes the fine blocks cannot reach
+    assert hops.max() >= 6 and beyond.sum() > 100
+    x2 = x.clone()
+    x2[0] += 1e-3
+    with torch.no_grad():
+        a = sim.predict(Frame(x, x, tool, tool, bunny.tool_rest_pose))
+        b = sim.predict(Frame(x, x2, tool, tool, bunny.tool_rest_pose))
+    changed = ((a - b).abs().max(dim=1).values > 0).numpy()
+    if coarse:  # nearly all (an untrained ReLU network can zero a difference here and there)
+        assert changed[beyond].mean() > 0.8
+    else:
+        assert not changed[beyond].any()
+
+
+def test_quasi_static_output_is_a_displacement_from_rest(bunny):
+    tpl = template_from_scene(bunny, surface_only=True)
+    sim = Simulator(tpl, ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, surface_only=True))
+    out = torch.full((tpl.num_object_nodes, 3), 0.5, dtype=torch.float32)
+    x_t = tpl.rest + 0.01
+    got = sim.integrate(out, x_t, x_t)
+    expect = tpl.rest + sim.output_normalizer.inverse(out.double())
+    free = ~tpl.pinned
+    torch.testing.assert_close(got[free], expect[free])
+    torch.testing.assert_close(got[~free], x_t[~free])  # pinned nodes stay
+    with pytest.raises(Exception, match="order"):
+        Simulator(tpl, ModelConfig(order=3, surface_only=True))
+
+
+# -- the data ---------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["sphere_mat", "cone_bunny", "cylinder_banana", "knife_torus"])
+def test_the_family_covers_the_workspace(name):
+    scene = load_scene(name, "ci")
+    poses = np.concatenate([sample_poses(scene, s, 80, clip=False) for s in split_seeds("train", 6)])
+    assert np.all((poses[:, :3] >= scene.workspace_min) & (poses[:, :3] <= scene.workspace_max))
+    lo, hi = scene.object_bbox()
+    near = poses[poses[:, 2] < scene.tool_rest_pose[2] - 1e-6, :2]  # below the rest height: at or in the object
+    span = (near.max(0) - near.min(0)) / (hi[:2] - lo[:2])
+    # presses reach far apart parts of the object, not a disk around one target (old families: < 0.3)
+    assert span.max() > 0.45, span
+
+
+# -- the runtime ----------------------------------------------------------------------------------------------------
+def test_predictor_starts_from_and_relaxes_toward_the_settled_rest():
+    scene = fx.scene()
+    loaded = load_checkpoint(fx.trained_checkpoint("full"))
+    rest = settled_rest(loaded, scene)
+    first = __import__("colgnn_core.io", fromlist=["load_sequence"]).load_sequence(
+        sorted(fx.dataset_dir().glob("train_*.npz"))[0]).object_positions[0]
+    np.testing.assert_array_equal(rest, first)  # recorded by training: frame 0 of the ground truth
+    assert np.abs(rest - scene.object.vertices).max() > 0  # settled under gravity: not the mesh file
+    p = Predictor(loaded, scene, threads=1)
+    np.testing.assert_array_equal(p.positions, rest)
+    torch.testing.assert_close(p.net.rest, torch.from_numpy(rest[p.template.object_nodes]))
+
+
+def test_predictor_flags_a_tool_pose_far_from_the_training_poses():
+    scene = fx.scene()
+    loaded = load_checkpoint(fx.trained_checkpoint("full"))
+    p = Predictor(loaded, scene, threads=1)
+    contact = sample_poses(scene, split_seeds("train", 1)[0], fx.FRAMES)
+    res = [p.step(pose) for pose in contact[1:]]
+    assert sum(r.out_of_domain for r in res) == 0 and p.state.out_of_domain == 0
+    # the same trajectory, with a training record that puts every training pose 5 cm away
+    far = dict(loaded.extra, domain_tool_positions=loaded.extra["domain_tool_positions"] + 0.05)
+    q = Predictor(replace(loaded, extra=far), scene, threads=1)
+    res = [q.step(pose) for pose in contact[1:]]
+    assert sum(r.out_of_domain for r in res) > 0 and q.state.out_of_domain == sum(r.out_of_domain for r in res)
