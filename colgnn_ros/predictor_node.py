@@ -45,7 +45,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import validate_pose
 from colgnn_core.runtime.models import shipped_checkpoint
-from colgnn_core.runtime.predictor import Predictor
+from colgnn_core.runtime.predictor import Predictor, auto_threads
 from colgnn_core.scenes import scene_names
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS, ParamSpec, declare_parameters, run_node
 from msg_tools.conversions import NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array, stamp_to_ns
@@ -56,6 +56,7 @@ EARLY_STEP_FRACTION = 0.75   # step_on_arrival: a pose is stepped at once when i
 DIAGNOSTICS_PERIOD_S = 1.0
 WARN_PERIOD_S = 2.0          # at most one warning per rejection reason per this many seconds
 STEP_WINDOW = 250            # step times kept for the diagnostics' median / p95
+PACE_WINDOW = 20             # steps whose median step time is compared with dt (the "cannot keep up" warning)
 
 #: Rejection reasons, in the order the checks run; each is a diagnostics counter ``rejected_<reason>``.
 REJECT_REASONS = ("nan", "non_unit", "frame_id", "stale", "out_of_order", "outside_workspace", "jump")
@@ -78,8 +79,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "0 disables the check", range=(0.0, 3600.0)),
     ParamSpec("step_on_arrival", True, "step a pose as soon as it arrives when its stamp is at least 0.75 dt after the "
               "last stepped pose's (false: only the dt timer steps, adding up to dt of latency)"),
-    ParamSpec("threads", 1, "torch intra-op threads (1: steadiest step times when the CPU is shared; more only "
-              "helps large models on idle cores)", range=(1, 256)),
+    ParamSpec("threads", 0, "torch intra-op threads; 0: chosen for the machine (1 up to 4 cores, where a 2-thread "
+              "pool collapses once another process holds a core; else half the cores, at most 4)", range=(0, 256)),
     ParamSpec("limits", "data", "cap the network output by its training data's extremes ('data': 2x the largest "
               "per-step motion, 1.5x the largest distance from rest; bounds a long run's drift) or not ('none')",
               choices=("data", "none")),
@@ -87,8 +88,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "while the tool is out of the network's reach, move the object this fraction "
               "of the way back to its rest shape per step (the objects are elastic; a learned model drifts instead); "
               "0 disables", range=(0.0, 0.99)),
-    ParamSpec("compile", False, "torch.compile the network at start-up (10-30 s, cached on disk by torch): ~1.8x "
-              "faster GNN step, worth it for full-resolution models; falls back to eager with a warning"),
+    ParamSpec("compile", True, "torch.compile the network at start-up (~1.8x faster GNN step; a few seconds with "
+              "torch's disk cache, which make setup warms, 10-30 s without); falls back to eager with a warning"),
 )
 
 
@@ -100,6 +101,7 @@ class PredictorNode(Node):
     """
 
     def __init__(self, **node_kwargs) -> None:
+        started = time.monotonic()
         super().__init__(NODE_NAME, **node_kwargs)
         try:
             self.params = p = declare_parameters(self, PARAMETERS)
@@ -150,15 +152,19 @@ class PredictorNode(Node):
         self._diag_timer = self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         self.get_logger().info(
             f"scene {self.scene.name} ({self.scene.resolution}), checkpoint {self.checkpoint_name}, dt {self.dt:g} s, "
-            f"correction {'on' if pred.correction else 'off'}, {len(surface_ids)} surface vertices; "
-            f"listening on {self._sub.topic_name}, frame '{self.frame_id}'")
+            f"correction {'on' if pred.correction else 'off'}, {len(surface_ids)} surface vertices, "
+            f"{pred.threads} thread(s), {'compiled' if pred.compiled else 'eager'} network; "
+            f"listening on {self._sub.topic_name}, frame '{self.frame_id}'; ready in "
+            f"{time.monotonic() - started:.1f} s")
+        self._slow_warned = False
 
     # -- set-up -----------------------------------------------------------------------------------------------------
     def _load_predictor(self, p: dict):
         path = p["checkpoint"] or str(shipped_checkpoint(p["scene"]))
         self.checkpoint_name = path
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
-                                         threads=p["threads"], compile=p["compile"], limits=p["limits"],
+                                         threads=p["threads"] or auto_threads(), compile=p["compile"],
+                                         limits=p["limits"],
                                          rest_relaxation=p["rest_relaxation"])
         if pred.scene.name != p["scene"]:
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "
@@ -221,7 +227,21 @@ class PredictorNode(Node):
         st["out_of_domain"] += res.out_of_domain
         self._step_ms.append(res.timings_ms["total"])
         self._step_times.append(self._last_step_t)
+        self._check_pace()
         return True
+
+    def _check_pace(self) -> None:
+        """Say once when the step cannot keep up with the model's dt (poses are then superseded, not queued)."""
+        if self._slow_warned or len(self._step_ms) < PACE_WINDOW:
+            return
+        median = float(np.median(list(self._step_ms)[-PACE_WINDOW:]))
+        if median > 1e3 * self.dt:
+            self._slow_warned = True
+            self.get_logger().warning(
+                f"cannot keep up: the step takes {median:.1f} ms (median of the last {PACE_WINDOW}), more than the "
+                f"model's dt {1e3 * self.dt:g} ms; newer poses supersede the waiting one "
+                f"({self.stats['poses_superseded']} so far, 'poses_superseded' in /diagnostics). Try compile:=true, "
+                f"another threads value, or a smaller model")
 
     def _check(self, msg: PoseStamped) -> tuple[np.ndarray | None, int]:
         """(validated pose, stamp ns), or (None, stamp) after counting and warning about a rejection."""

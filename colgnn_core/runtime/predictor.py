@@ -35,6 +35,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import math
+import os
 import time
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -182,6 +183,18 @@ def _release_memory() -> None:
 
 def _rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
     return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(q0, q1))))))
+
+
+def auto_threads(cpu_count: int | None = None) -> int:
+    """The torch thread count for a real-time Predictor on a machine with ``cpu_count`` cores (default: this one).
+
+    Measured on a 2-core machine (docs/SPEED.md): torch's OpenMP pool at 2 threads collapses (0.1-1.3 s per step)
+    as soon as another process holds one of the cores, as the pose publisher and the recorder do next to the
+    node, while 1 thread stays within ~30% of the quiet 2-thread step. So 1 thread up to 4 cores; above that, half
+    the cores, at most 4 (not measured here: a larger machine has headroom for the pool).
+    """
+    n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
+    return 1 if n <= 4 else min(4, n // 2)
 
 
 class Predictor:
