@@ -11,6 +11,7 @@ the correction) and writes it as JSON. Outputs, under ``--out`` (``out/demo``)::
     bag/            rosbag2 folder (MCAP): open it in Foxglove, or `ros2 bag play` + RViz
     demo.png        the rendered strip (3-D views and cross-sections through the contact)
     summary.json    the printed numbers
+    summary.md      the same as a table (with --docs also written to DOCS/DEMO.md, picture in DOCS/img/demo.png)
 
 Run with the venv's interpreter (``.venv/bin/colgnn_demo`` or ``.venv/bin/python -m colgnn_ros.demo``).
 ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` unless set) on
@@ -24,6 +25,7 @@ import argparse
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -41,6 +43,7 @@ from colgnn_core.collision.exact import has_intersections
 from colgnn_core.collision.metrics import triangle_pairs_intersecting
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
+from colgnn_core.evaluation.provenance import provenance_line
 from colgnn_core.evaluation.render import render_strip
 from colgnn_core.io import Sequence
 from colgnn_core.learn.checkpoint import CheckpointMeta, read_checkpoint
@@ -173,9 +176,74 @@ def exact_check(rec: dict, scene, every: int = 10) -> tuple[int, int]:
     return int(tool_hits), int(any_hits)
 
 
+def node_parameters(scene: str, checkpoint: Path, args: argparse.Namespace) -> list[str]:
+    """The predictor's ``-p name:=value`` arguments: the node's defaults unless the demo's flags set them."""
+    params = {"scene": scene, "checkpoint": str(checkpoint)}
+    if args.threads is not None:
+        params["threads"] = str(args.threads)
+    if args.foxglove:
+        params["foxglove_port"] = str(args.foxglove)
+    return [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
+
+
+def startup_seconds(log: Path) -> float | None:
+    """The node's start-up time, from its 'ready in X s' log line (None if absent)."""
+    match = re.search(r"ready in ([0-9.]+) s", log.read_text(errors="replace")) if log.is_file() else None
+    return float(match.group(1)) if match else None
+
+
+def summary_markdown(s: dict, provenance: str) -> str:
+    """The demo's summary as a markdown page (what ``--docs`` writes to DEMO.md)."""
+    rows = [
+        ("poses meshed", f"{s['meshes_received']} of {s['poses_published']} ({100 * s['mesh_fraction']:.1f}%)"),
+        ("rejected poses", f"{s['rejected_poses']}"),
+        ("node step, median (p95)", f"{s['step_ms_median']:.1f} ms ({s['step_ms_p95']:.1f} ms)"),
+        ("pose → marker latency, median (p95)", f"{s['latency_ms_median']:.1f} ms ({s['latency_ms_p95']:.1f} ms)"),
+        ("node start-up (launch to ready)", "unknown" if s.get("startup_s") is None else f"{s['startup_s']:.1f} s"),
+        ("node settings", f"{s.get('node_threads', '?')} thread(s), {s.get('node_network', '?')} network"),
+        ("collisions before correction (vertex-face, edge-edge)",
+         f"{s['collisions_before']['vertex_face']}, {s['collisions_before']['edge_edge']}"),
+        ("collisions after correction (vertex-face, edge-edge)",
+         f"{s['collisions_after']['vertex_face']}, {s['collisions_after']['edge_edge']}"),
+        ("frames whose mesh intersects the tool (exact, every frame)",
+         f"{s['tool_intersecting_frames']} of {s['meshes_received']}"),
+        ("frames with any intersection, self included (ipctk, every 10th)",
+         f"{s['ipctk_intersecting_frames_every_10th']} of {(s['meshes_received'] + 9) // 10}"),
+        ("demo wall time (start-up, run, check, picture)", f"{s['wall_s']:.0f} s"),
+    ]
+    table = "\n".join(["| | |", "|---|---:|", *(f"| {k} | {v} |" for k, v in rows)])
+    return (f"# The latest `make demo`\n\n{provenance}\n\n"
+            f"Scene `{s['scene']}` ({s['resolution']}), model `{Path(s['checkpoint']).name}`, trajectory "
+            f"`{s['trajectory']}`, dt {s['dt']:g} s, the predictor node's default parameters unless stated above. "
+            f"This page is written by the demo itself; do not edit it by hand.\n\n{table}\n\n"
+            f"![demo](img/demo.png)\n\nThe recording (`out/demo/bag`, rosbag2 MCAP) opens in Foxglove (3D panel: "
+            f"`/deformed_mesh` and `/tool_marker`; Plot or Raw Messages: `/collision_counts`, `/diagnostics`) and "
+            f"plays with `ros2 bag play out/demo/bag` into RViz (Marker displays on the same two topics).\n")
+
+
+def write_docs(s: dict, picture: Path, docs: Path, provenance: str) -> Path:
+    """DEMO.md and img/demo.png in ``docs`` (atomically: a reader never sees half a page)."""
+    (docs / "img").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(picture, docs / "img" / "demo.png.tmp")
+    os.replace(docs / "img" / "demo.png.tmp", docs / "img" / "demo.png")
+    page = docs / "DEMO.md"
+    tmp = page.with_suffix(".md.tmp")
+    tmp.write_text(summary_markdown(s, provenance))
+    os.replace(tmp, page)
+    return page
+
+
+def node_settings(log: Path) -> tuple[str, str]:
+    """(threads, 'compiled' or 'eager') from the node's start-up log line."""
+    text = log.read_text(errors="replace") if log.is_file() else ""
+    match = re.search(r"(\d+) thread\(s\), (compiled|eager) network", text)
+    return (match.group(1), match.group(2)) if match else ("?", "?")
+
+
 # ----------------------------------------------------------------------------- the run
 
 def run(args: argparse.Namespace) -> int:
+    started = time.monotonic()
     checkpoint = Path(args.checkpoint) if args.checkpoint else shipped_checkpoint(args.scene)
     meta = CheckpointMeta(**read_checkpoint(checkpoint)["meta"])
     if meta.scene != args.scene:
@@ -208,8 +276,7 @@ def run(args: argparse.Namespace) -> int:
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         predictor = subprocess.Popen(
-            [py, "-m", "colgnn_ros.predictor_node", "--ros-args", "-p", f"scene:={scene.name}",
-             "-p", f"checkpoint:={checkpoint}", "-p", f"threads:={args.threads}"],
+            [py, "-m", "colgnn_ros.predictor_node", "--ros-args", *node_parameters(scene.name, checkpoint, args)],
             env=env, stdout=logs["predictor"], stderr=subprocess.STDOUT)
         publisher = subprocess.Popen(
             [py, "-m", "colgnn_ros.pose_publisher_node", "--ros-args", "-p", f"scene:={scene.name}",
@@ -268,7 +335,15 @@ def run(args: argparse.Namespace) -> int:
     s.update(scene=scene.name, resolution=scene.resolution, checkpoint=str(checkpoint), dt=meta.dt,
              trajectory=args.trajectory, bag=str(bag), picture=str(picture))
     render(rec, scene, picture, "node")
+    s["startup_s"] = startup_seconds(out / "predictor.log")
+    s["node_threads"], s["node_network"] = node_settings(out / "predictor.log")
+    s["wall_s"] = time.monotonic() - started
     summary_file.write_text(json.dumps(s, indent=2) + "\n")
+    markdown = summary_markdown(s, provenance_line(args.command))
+    (out / "summary.md").write_text(markdown)
+    print(markdown)
+    if args.docs:
+        print(f"wrote {write_docs(s, picture, Path(args.docs), provenance_line(args.command))}")
     print(f"steps: {s['steps']} ({s['meshes_received']} meshes for {s['poses_published']} poses, "
           f"{100 * s['mesh_fraction']:.1f}%), rejected poses {s['rejected_poses']}")
     print(f"step ms: median {s['step_ms_median']:.1f}, p95 {s['step_ms_p95']:.1f}")
@@ -290,7 +365,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", default=None, help="model (.pt); default: the scene's shipped model")
     ap.add_argument("--trajectory", default="press", help="pose_publisher's scripted motion (default press)")
     ap.add_argument("--duration", type=float, default=10.0, help="seconds of poses to record (default 10)")
-    ap.add_argument("--threads", type=int, default=1, help="the node's torch threads (default 1)")
+    ap.add_argument("--threads", type=int, default=None, help="the node's torch threads (default: the node's, chosen "
+                    "for the machine)")
+    ap.add_argument("--foxglove", type=int, default=0, metavar="PORT",
+                    help="also stream the scene live to Foxglove on ws://localhost:PORT (default 0: off)")
+    ap.add_argument("--docs", default=None, help="also write DOCS/DEMO.md and DOCS/img/demo.png (make demo: docs)")
+    ap.add_argument("--command", default="python -m colgnn_ros.demo", help=argparse.SUPPRESS)
     ap.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     args = ap.parse_args(argv)
     if not 0.1 <= args.duration <= 3600:

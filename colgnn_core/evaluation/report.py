@@ -28,20 +28,18 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import shutil
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-import torch
 
 from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.evaluation.accuracy import evaluate, plot_curves
 from colgnn_core.evaluation.frontier import frontier, model_size
 from colgnn_core.evaluation.measure import stats, test_files
 from colgnn_core.evaluation.render import render_strip
-from colgnn_core.evaluation.report_data import (ROWS, FrontierResult, FrontierSection, HardCase, Machine, Pictures,
+from colgnn_core.evaluation.report_data import (ROWS, FrontierResult, FrontierSection, HardCase, Pictures,
                                                 ResultsReport, Row, SceneResults, Settings, SkippedScene, SpeedRow,
                                                 Stat)
 from colgnn_core.evaluation.report_markdown import format_results
@@ -53,6 +51,7 @@ from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION, Predictor
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import load_scene, scene_names
 from colgnn_core.sim.dataset import generate_dataset, simulate_sequence
+from colgnn_core.evaluation.provenance import machine
 
 VARIANTS = ("subspace", "baseline", "no-compact", "full")
 PICTURE_DPI = 60  # the committed strips stay small (~100-150 KB each)
@@ -63,17 +62,6 @@ def model_paths(models_dir: Path, scene_name: str) -> dict[str, Path]:
     """The shipped checkpoints of a scene by variant (only those that exist)."""
     names = {v: f"{scene_name}.pt" if v == "full" else f"{scene_name}_{v}.pt" for v in VARIANTS}
     return {v: Path(models_dir) / n for v, n in names.items() if (Path(models_dir) / n).is_file()}
-
-
-def machine() -> Machine:
-    """The CPU model, core count and Python/torch versions of this machine."""
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
-    except OSError:
-        pass
-    return Machine(cpu=cpu, cores=os.cpu_count(), python=platform.python_version(), torch=torch.__version__)
 
 
 def test_data(scene, out_dir: Path, sequences: int, frames: int, jobs: int, progress: bool) -> tuple[Path, int, str]:
