@@ -7,7 +7,7 @@ STAMP   := $(VENV)/.setup-done
 PIPQ    := $(VPY) -m pip install --quiet --disable-pip-version-check
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup test test-slow demo results clean
+.PHONY: setup test test-slow demo results speed clean
 
 setup: $(STAMP)
 
@@ -42,6 +42,11 @@ demo: setup
 # test data simulated on this machine (data/results, resumable). About 55 min on an idle 2-core machine, 35 min with the test data already simulated (stated in the report).
 results: setup
 	$(VPY) -m colgnn_core evaluate --all --out docs --compile --threads 2
+
+# docs/SPEED.md and docs/bench/*.json: the four shipped models against the IPC solver, one process, written by the
+# command itself (about 5 min; run it on a quiet machine: the page records the load).
+speed: setup
+	$(VPY) -m colgnn_core bench --scene all --threads 2 --compile --frames 20 --markdown docs/SPEED.md
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

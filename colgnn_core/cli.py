@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 from typing import Callable, Sequence
@@ -21,6 +22,7 @@ from colgnn_core.evaluation.frontier import format_frontier, frontier
 from colgnn_core.evaluation.render import render_file, render_strip
 from colgnn_core.evaluation.report import results
 from colgnn_core.evaluation.speed import bench, format_bench
+from colgnn_core.evaluation.speed_page import write_speed_page
 from colgnn_core.evaluation.stability import format_stability, stability
 from colgnn_core.io import ensure_writable_dir, read_poses_csv, save_sequence
 from colgnn_core.learn.train import TrainConfig, train
@@ -124,9 +126,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(json.dumps(result, indent=2) if args.json else format_bench_collision(result))
         return 0
 
-    result = bench(args.scene, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
-                   correction=not args.no_correction, progress=not args.json, compile=args.compile)
-    print(json.dumps(result, indent=2) if args.json else format_bench(result))
+    if args.scene == "all" and not args.markdown:
+        raise InputError("--scene all needs --markdown FILE (one page for the four scenes)")
+    scenes = scene_names() if args.scene == "all" else [args.scene]
+    results = []
+    for name in scenes:
+        result = bench(name, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
+                       correction=not args.no_correction, progress=not args.json, compile=args.compile)
+        print(json.dumps(result, indent=2) if args.json else format_bench(result), flush=True)
+        results.append(result)
+    if args.markdown:
+        print(f"wrote {write_speed_page(results, Path(args.markdown), args.invocation)}")
     return 0
 
 
@@ -263,9 +273,11 @@ def _add_rollout(sub) -> None:
 
 def _add_bench(sub) -> None:
     p = sub.add_parser("bench", help="Predictor step time vs the IPC solver on the same poses, in one run")
-    p.add_argument("--scene", required=True)
+    p.add_argument("--scene", required=True, help="a scene, or 'all' (with --markdown)")
     p.add_argument("--checkpoint", default=None, help="default: the shipped model of the scene")
     p.add_argument("--frames", type=_positive, default=40, help="trajectory length, rest frame included")
+    p.add_argument("--markdown", default=None, metavar="FILE",
+                   help="also write the results as a page (docs/SPEED.md) and FILE's folder/bench/<scene>.json")
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
     p.add_argument("--compile", action="store_true", help="torch.compile the network first (faster steps)")
@@ -370,6 +382,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser, handlers = build_parser()
     args = parser.parse_args(argv)
+    args.invocation = "colgnn " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     try:
         return handlers[args.command](args)
     except InputError as exc:
