@@ -17,6 +17,8 @@ and msg_tools (marker bytes, counts, diagnostics):
   by the distance to the tool), ``tool_marker`` (the tool mesh at the pose used), ``collision_counts``
   (Int32MultiArray, labelled fields), ``/diagnostics`` (1 Hz: step ms median/p95, rate, fallbacks,
   rejected poses per reason). Output stamps are the input pose's stamp.
+- optional live view (``foxglove_port`` > 0): the same mesh, tool and counts on the Foxglove SDK's WebSocket
+  server at ws://127.0.0.1:PORT (msg_tools.foxglove_live); its errors are logged, never fatal.
 - service ``reset`` (std_srvs/Trigger): object back at rest, tool at its rest pose.
 - bad input (NaN, non-unit quaternion, wrong frame_id, stale or out-of-order stamp, outside the
   workspace, a jump needing more than ``max_substeps`` model steps) is rejected with a throttled
@@ -24,6 +26,7 @@ and msg_tools (marker bytes, counts, diagnostics):
 
     predictor --ros-args -p scene:=sphere_mat
     predictor --ros-args -p checkpoint:=model.pt -p scene:=cone_bunny -p correction:=false
+    predictor --ros-args -p foxglove_port:=8765    # live view: Foxglove -> Open connection -> ws://localhost:8765
     predictor --help
 """
 
@@ -48,7 +51,9 @@ from colgnn_core.runtime.models import shipped_checkpoint
 from colgnn_core.runtime.predictor import Predictor, auto_threads
 from colgnn_core.scenes import scene_names
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS, ParamSpec, declare_parameters, run_node
-from msg_tools.conversions import NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array, stamp_to_ns
+from msg_tools.conversions import (COLLISION_COUNT_LABELS, NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array,
+                                   stamp_to_ns)
+from msg_tools.foxglove_live import LiveView
 from msg_tools.markers import DistanceColormap, TriangleListMarker
 
 NODE_NAME = "predictor"
@@ -90,6 +95,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "0 disables", range=(0.0, 0.99)),
     ParamSpec("compile", True, "torch.compile the network at start-up (~1.8x faster GNN step; a few seconds with "
               "torch's disk cache, which make setup warms, 10-30 s without); falls back to eager with a warning"),
+    ParamSpec("foxglove_port", 0, "live view: serve the mesh, the tool and the collision counts to the Foxglove app "
+              "on ws://127.0.0.1:PORT (Foxglove SDK WebSocket; pip install foxglove-sdk); 0: off",
+              range=(0, 65535)),
 )
 
 
@@ -130,6 +138,7 @@ class PredictorNode(Node):
                           if p["color_by_distance"] else None)
         self._tool_marker = TriangleListMarker(pred.tool_faces, pred.scene.tool.vertices.shape[0],
                                                frame_id=self.frame_id, ns="tool", color=(0.6, 0.6, 0.65, 0.6))
+        self._live = self._start_live_view(p["foxglove_port"], local[pred.surface_faces], pred.tool_faces)
 
         self.stats: dict[str, int] = {"poses_received": 0, "poses_superseded": 0, "steps": 0, "model_steps": 0,
                                       "fallbacks": 0, "out_of_domain": 0, "resets": 0, "publish_errors": 0}
@@ -170,6 +179,25 @@ class PredictorNode(Node):
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "
                              f"(set scene:={pred.scene.name})")
         return pred
+
+    def _start_live_view(self, port: int, object_faces: np.ndarray, tool_faces: np.ndarray) -> LiveView | None:
+        """The Foxglove live view on ``port`` (0: none). A failure to start is logged; the node runs without it."""
+        if not port:
+            return None
+        try:
+            live = LiveView(port, object_faces, tool_faces, frame_id=self.frame_id, count_labels=COLLISION_COUNT_LABELS)
+        except Exception as exc:  # optional: a missing SDK or a port in use must not stop the node
+            self.get_logger().error(f"Foxglove live view not started on port {port}: {exc}")
+            return None
+        self.get_logger().info(f"Foxglove live view on {live.url} (Foxglove: Open connection -> Foxglove WebSocket)")
+        return live
+
+    def destroy_node(self) -> None:
+        live = getattr(self, "_live", None)
+        if live is not None:
+            self._live = None
+            live.close()
+        super().destroy_node()
 
     # -- callbacks --------------------------------------------------------------------------------------------------
     def _on_pose(self, msg: PoseStamped) -> None:
@@ -296,6 +324,15 @@ class PredictorNode(Node):
         if self._tool_pub is not None:
             self._tool_pub.publish(self._tool_marker.build(res.tool_vertices, stamp))
         self._counts_pub.publish(counts_to_msg(res.collision_counts()))
+        if self._live is not None:
+            self._publish_live(stamp_to_ns(stamp), surface, res, colors)
+
+    def _publish_live(self, stamp_ns: int, surface: np.ndarray, res, colors: np.ndarray | None) -> None:
+        """The step on the Foxglove live view; its errors are warned about (throttled), never raised."""
+        try:
+            self._live.publish(stamp_ns, surface, res.tool_vertices, res.collision_counts(), colors)
+        except Exception as exc:  # the live view is optional: never let it stop the node
+            self._warn("live_view", f"Foxglove live view not updated: {exc}")
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         steps = self.stats["steps"]

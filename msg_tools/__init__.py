@@ -7,6 +7,8 @@ Used only by the ROS side (colgnn_ros); colgnn_core never imports it.
   ~0.2 ms for 36k corners), :class:`DistanceColormap`, :func:`parse_marker_cdr`.
 - :mod:`msg_tools.recorder`: :class:`BagWriter`, :class:`TopicRecorder`, :func:`read_bag`,
   :func:`read_bag_messages`, :func:`bag_summary`, ``python -m msg_tools.recorder``.
+- :mod:`msg_tools.foxglove_live`: :class:`LiveView`, the optional live view over the Foxglove SDK's WebSocket
+  server (the ``foxglove`` package is imported only when one starts).
 - :mod:`msg_tools.benchmark`: ``python -m msg_tools.benchmark`` (naive vs pool vs CDR).
 """
 
