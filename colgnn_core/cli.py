@@ -87,7 +87,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     config = None
-    if args.ccd_form is not None or args.model is not None or args.graph is not None:
+    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options)):
         config = TrainConfig()
         if args.graph is not None:
             config.model = {**config.model, "surface_only": args.graph == "surface"}
@@ -96,6 +96,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.model is not None:
             latent, steps, layers = args.model
             config.model = {**config.model, "latent": latent, "message_passing_steps": steps, "mlp_layers": layers}
+        if args.model_options is not None:
+            config.model = {**config.model, **args.model_options}
     result = train(args.scene, args.data, args.out, variant=args.variant, resume=args.resume, steps=args.steps,
                    seed=args.seed, threads=args.threads, config=config, resolution=args.resolution,
                    time_budget_s=args.time_budget, progress=not args.quiet)
@@ -235,6 +237,16 @@ def _add_generate(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"not JSON: {exc}") from exc
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError("expected a JSON object, e.g. '{\"order\": 0}'")
+    return value
+
+
 def _add_train(sub) -> None:
     p = sub.add_parser("train", help="train a model on a generated dataset")
     p.add_argument("--scene", required=True)
@@ -249,6 +261,9 @@ def _add_train(sub) -> None:
     p.add_argument("--threads", type=_positive, default=None, help="torch threads")
     p.add_argument("--model", type=_model_size, default=None, metavar="L/S/M",
                    help="latent/message-passing steps/MLP layers")
+    p.add_argument("--model-options", type=_json_object, default=None, metavar="JSON",
+                   help='more model settings (learn.model.ModelConfig), e.g. \'{"order": 0, "quasi_static": true, '
+                        '"coarse_nodes": 32, "coarse_steps": 3}\'')
     p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None,
                    help="reduction of L_ccd (paper: max)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",

@@ -22,6 +22,7 @@ import argparse
 import json
 import os
 import random
+import shlex
 import signal
 import subprocess
 import sys
@@ -40,6 +41,8 @@ from visualization_msgs.msg import Marker
 
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
+from colgnn_core.evaluation.provenance import provenance_line
+from colgnn_core.io import atomic_write
 from colgnn_core.learn.checkpoint import CheckpointMeta, read_checkpoint
 from colgnn_core.runtime.models import shipped_checkpoint
 from colgnn_ros.common import OUTPUT_QOS
@@ -73,7 +76,7 @@ def run(args: argparse.Namespace) -> dict:
     env = child_env(domain)
     py = sys.executable
     node_cmd = [py, "-m", "colgnn_ros.predictor_node", "--ros-args", "-p", f"scene:={meta.scene}",
-                "-p", f"checkpoint:={checkpoint}", "-p", f"threads:={args.threads}",
+                "-p", f"checkpoint:={checkpoint}", "-p", f"threads:={args.threads}",  # 0: the node chooses
                 "-p", f"correction:={'true' if args.correction else 'false'}",
                 "-p", f"color_by_distance:={'true' if args.color else 'false'}",
                 "-p", f"step_on_arrival:={'false' if args.timer_only else 'true'}",
@@ -182,13 +185,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=30.0,
                     help="seconds of poses (default 30; 600 for the memory check)")
     ap.add_argument("--trajectory", default="press", help="pose_publisher's scripted motion, looped (default press)")
-    ap.add_argument("--threads", type=int, default=1, help="the node's torch threads (default 1)")
-    ap.add_argument("--compile", action="store_true", help="the node torch.compiles its network at start-up")
+    ap.add_argument("--threads", type=int, default=0, help="the node's torch threads (default 0: the node's "
+                    "choice for the machine)")
+    ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=True,
+                    help="the node torch.compiles its network at start-up (default: yes, as the node)")
     ap.add_argument("--no-correction", dest="correction", action="store_false")
     ap.add_argument("--no-color", dest="color", action="store_false", help="no per-vertex colours in the marker")
     ap.add_argument("--timer-only", action="store_true",
                     help="step_on_arrival:=false: only the dt timer steps (up to dt more latency)")
     ap.add_argument("--json", default=None, help="also write the summary here")
+    ap.add_argument("--markdown", default=None, metavar="FILE",
+                    help="also write the result as a page (docs/LATENCY.md), with command, machine and load")
     ap.add_argument("--quiet", action="store_true", help="hide the node's log")
     args = ap.parse_args(argv)
     try:
@@ -206,8 +213,36 @@ def main(argv: list[str] | None = None) -> int:
           f"({result['rss_mb_per_min']:+.2f} MB/min)")
     print(json.dumps(result))
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+        with atomic_write(args.json, "w") as fh:
+            fh.write(json.dumps(result, indent=2) + "\n")
+    if args.markdown:
+        command = "colgnn_bench_latency " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+        with atomic_write(args.markdown, "w") as fh:
+            fh.write(latency_markdown(result, provenance_line(command)))
+        print(f"wrote {args.markdown}")
     return 0
+
+
+def latency_markdown(r: dict, provenance: str) -> str:
+    """The page ``--markdown`` writes: one run's latency, mesh fraction and memory."""
+    diag = r.get("node_diagnostics") or {}
+    rows = [
+        ("run", f"`{r['scene']}` ({r['resolution']}), `{Path(r['checkpoint']).name}`, {r['rate_hz']:g} Hz looping "
+                f"poses, {r['duration_s']} s, threads {r['threads'] or 'node default'}, "
+                f"{'compiled' if r['compile'] else 'eager'}, correction {'on' if r['correction'] else 'off'}"),
+        ("pose → mesh latency median / p95 / max",
+         f"**{r['latency_ms_median']:.1f} / {r['latency_ms_p95']:.1f} / {r['latency_ms_max']:.1f} ms**"),
+        ("poses that gave a mesh", f"**{100 * r['mesh_fraction']:.1f}%** of {r['poses']}"),
+        ("node step median / p95 (its /diagnostics)",
+         f"{float(diag.get('step_ms_median', 'nan')):.1f} / {float(diag.get('step_ms_p95', 'nan')):.1f} ms"),
+        ("node memory (RSS)", f"{r['rss_mb_start']:.0f} → {r['rss_mb_end']:.0f} MB ({r['rss_mb_per_min']:+.2f} "
+                              f"MB/min fitted after warm-up)"),
+    ]
+    table = "\n".join(["| | |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)])
+    return (f"# Latency\n\n{provenance}\n\n`colgnn_bench_latency` runs the `predictor` node and a looping "
+            f"`pose_publisher` as separate processes over DDS and measures, from a third, the latency from each "
+            f"pose's stamp to the receipt of its mesh. This page is written by that command; do not edit it by "
+            f"hand.\n\n{table}\n")
 
 
 if __name__ == "__main__":

@@ -92,3 +92,22 @@ def test_generate_test_split_only(tmp_path, capsys):
                  "--frames", "3", "--out", str(out), "--quiet"]) == 0
     assert sorted(p.name for p in out.glob("*.npz")) == ["test_0000.npz"]
     assert "1 sequence(s)" in capsys.readouterr().out
+
+
+def test_train_model_options_reach_the_checkpoint(tmp_path, capsys):
+    from colgnn_core.learn.registry import load_checkpoint
+    from tests.helpers import train_data as fx
+
+    out = tmp_path / "qs.pt"
+    assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(out), "--steps", "3",
+                 "--variant", "baseline", "--model", "8/1/1", "--quiet", "--threads", "1",
+                 "--model-options", '{"order": 0, "quasi_static": true}']) == 0
+    cfg = load_checkpoint(out).simulator.config
+    assert (cfg.order, cfg.quasi_static, cfg.latent, cfg.message_passing_steps) == (0, True, 8, 1)
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["train", "--scene", fx.SCENE, "--data", str(tmp_path), "--out", str(out), "--model-options", "[1]"])
+    assert "expected a JSON object" in capsys.readouterr().err
+    assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(tmp_path / "b.pt"),
+                 "--steps", "2", "--quiet", "--model-options", '{"quasi_static": true, "order": 2}']) == 2
+    assert "quasi_static needs order 0" in capsys.readouterr().err

@@ -158,6 +158,44 @@ def test_quasi_static_output_is_a_displacement_from_rest(bunny):
         Simulator(tpl, ModelConfig(order=3, surface_only=True))
 
 
+def _tool_frame(scene, lift: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    pose = np.asarray(scene.tool_rest_pose, dtype=np.float64).copy()
+    prev = pose.copy()
+    pose[2] += lift
+    world = lambda p: torch.from_numpy(scene.tool.world_vertices(p))
+    return world(prev), world(pose), pose
+
+
+def test_quasi_static_model_ignores_the_state_and_sees_the_tool_from_every_node(bunny):
+    tpl = template_from_scene(bunny, surface_only=True)
+    cfg = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, world_radius=0.01, surface_only=True, order=0,
+                      quasi_static=True)
+    torch.manual_seed(0)
+    sim = Simulator(tpl, cfg).eval()
+    tool_t, tool_next, pose = _tool_frame(bunny, -0.004)
+    x = tpl.rest.clone()
+    torn = x + 0.02 * torch.randn(x.shape, dtype=x.dtype, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        a = sim.predict(Frame(x, x, tool_t, tool_next, pose))
+        b = sim.predict(Frame(torn, torn, tool_t, tool_next, pose))  # any state: the same shape
+        _, far_next, far_pose = _tool_frame(bunny, 0.05)
+        c = sim.predict(Frame(x, x, tool_t, far_next, far_pose))
+    free = ~tpl.pinned
+    torch.testing.assert_close(a[free], b[free])  # pinned nodes keep x_t, as in every model
+    # moving the tool changes every free node, also those far beyond one message-passing hop
+    moved = ((a - c).abs().max(dim=1).values > 0).numpy() | tpl.pinned.numpy()
+    assert moved.all()
+    g = sim.build_graph(Frame(torn, torn, tool_t, tool_next, pose))
+    feats = g.node_features[: tpl.num_object_nodes]
+    n = tpl.num_node_types + 3
+    torch.testing.assert_close(feats[:, n:n + 3], tpl.rest - torch.as_tensor(pose[:3]))  # X - p, from the rest
+    sdf = torch.as_tensor(bunny.tool.sdf(tpl.rest.numpy(), pose))
+    torch.testing.assert_close(feats[:, n + 6], sdf)
+    torch.testing.assert_close(feats[:, :3], torch.zeros_like(feats[:, :3]))  # no velocity input
+    with pytest.raises(Exception, match="quasi_static needs order 0"):
+        Simulator(tpl, ModelConfig(surface_only=True, quasi_static=True, order=2))
+
+
 # -- the data ---------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["sphere_mat", "cone_bunny", "cylinder_banana", "knife_torus"])
 def test_the_family_covers_the_workspace(name):

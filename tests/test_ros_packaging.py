@@ -163,7 +163,7 @@ def test_installed_predictor_publishes_meshes_and_stops_on_sigint(colcon_install
     pub = node.create_publisher(PoseStamped, f"{ns}/tool_pose", POSE_QOS)
     inst = colcon_install.resolve()
     command = (f'exec "{inst}/lib/{PKG}/predictor" --ros-args -r __ns:={ns} -r /diagnostics:={ns}/diagnostics '
-               f"-p scene:={fx.SCENE} -p checkpoint:={checkpoint} -p threads:=1")
+               f"-p scene:={fx.SCENE} -p checkpoint:={checkpoint} -p threads:=1 -p compile:=false")
     proc = subprocess.Popen(sourced(inst, command), cwd=tmp_path, env=ros_env(domain),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from colgnn_core.errors import InputError
+from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, Pooling
 from colgnn_core.learn.graph import (MESH_EDGE_FEATURES, WORLD_EDGE_FEATURES, GraphInputs, GraphTemplate,
                                      build_graph, coarse_edges, coarse_template)
@@ -49,6 +50,9 @@ class ModelConfig:
     rest_feature: bool = False        # node feature: displacement from the rest shape x_t - X (0 for tool nodes)
     coarse_nodes: int = 0             # clusters of a coarse level (0: none)
     coarse_steps: int = 0             # message-passing steps on the coarse level
+    quasi_static: bool = False        # order 0 only: the graph is built on the settled rest, not on x_t, and every
+                                      # object node also sees the tool (TOOL_FEATURES): the shape is a function of
+                                      # the tool's pose and motion, so a rollout cannot drift or tear
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -99,6 +103,42 @@ def frame_from_sequence(template: GraphTemplate, object_positions: np.ndarray, t
     return frame, pos(object_positions[t + 1, nodes])
 
 
+TOOL_FEATURES = 20  # per-node tool features of a quasi-static model (see tool_features)
+
+
+def tool_features(template: GraphTemplate, rest: torch.Tensor, tool_t: torch.Tensor, tool_next: torch.Tensor,
+                  pose_next: np.ndarray | None) -> torch.Tensor:
+    """What every object node of a quasi-static model knows about the tool, whatever its hop distance [N+M,20].
+
+    Per object node (rest position X, tool pose (p, R) at t+1, metres): ``X - p`` (3), ``R^T (X - p)`` (3, the
+    node in the tool's frame), the tool's signed distance at X (1; inside the tool < 0: how deep the tool has
+    pushed into the rest shape there), the tool's motion t -> t+1 (3, centroid of its vertices), its axis
+    ``R e_z`` (3), X itself (3: where on the object the node is, which sets how stiff the response is), and the
+    contact seen from the node: ``X - c`` (3) and the depth ``-min sdf`` (1), with c the rest node deepest in the
+    tool (the nearest one when none is inside). These last four give a node many hops from the tool how deep and
+    where the press is, which the local world edges cannot. Tool nodes get zeros. Without a pose (``pose_next``
+    None) the tool's centroid and identity orientation stand in.
+    """
+    dtype = rest.dtype
+    motion = (tool_next - tool_t).mean(0)
+    if pose_next is None:
+        origin, rot = tool_next.mean(0), torch.eye(3, dtype=dtype)
+    else:
+        pose = np.asarray(pose_next, dtype=np.float64)
+        origin = torch.as_tensor(pose[:3], dtype=dtype)
+        rot = torch.as_tensor(quat_to_matrix(pose[3:]), dtype=dtype)
+    d = rest - origin
+    if template.tool_sdf is not None and pose_next is not None:
+        sdf = torch.as_tensor(template.tool_sdf(rest.detach().cpu().numpy(), np.asarray(pose_next)), dtype=dtype)
+    else:
+        sdf = torch.linalg.vector_norm(d, dim=1)
+    n = rest.shape[0]
+    deepest = int(torch.argmin(sdf))
+    obj = torch.cat([d, d @ rot, sdf[:, None], motion.expand(n, 3), rot[:, 2].expand(n, 3), rest,
+                     rest - rest[deepest], (-sdf[deepest]).expand(n, 1)], dim=1)
+    return torch.cat([obj, rest.new_zeros((template.num_tool_nodes, TOOL_FEATURES))], dim=0)
+
+
 @dataclass
 class TrainingOutputs:
     """What the losses need from one training frame (object nodes only)."""
@@ -124,7 +164,10 @@ class Simulator(nn.Module):
             raise InputError(f"model order must be 0, 1 or 2, got {config.order}")
         if (config.coarse_nodes > 0) != (config.coarse_steps > 0):
             raise InputError("coarse_nodes and coarse_steps must both be > 0 (a coarse level) or both 0")
-        node_in = template.node_feature_size + (3 if config.rest_feature else 0)
+        if config.quasi_static and config.order != 0:
+            raise InputError("quasi_static needs order 0 (the output is the displacement from the settled rest)")
+        node_in = (template.node_feature_size + (3 if config.rest_feature else 0)
+                   + (TOOL_FEATURES if config.quasi_static else 0))
         self.coarse = coarse_template(template, config.coarse_nodes) if config.coarse_nodes else None
         self.node_normalizer = Normalizer(node_in)
         edge_sets = dict(EDGE_SETS, **({"coarse": MESH_EDGE_FEATURES} if self.coarse is not None else {}))
@@ -153,6 +196,8 @@ class Simulator(nn.Module):
         self.settled_rest.copy_(rest)
 
     def build_graph(self, frame: Frame) -> GraphInputs:
+        if self.config.quasi_static:
+            return self._quasi_static_graph(frame)
         g = build_graph(self.template, frame.x_t, frame.x_prev, frame.tool_t, frame.tool_next, frame.pose_next)
         if self.config.rest_feature:
             rest = torch.cat([frame.x_t - self.settled_rest.to(frame.x_t.dtype),
@@ -161,6 +206,17 @@ class Simulator(nn.Module):
         if self.coarse is not None:
             g = replace(g, coarse=coarse_edges(self.coarse, frame.x_t))
         return g
+
+    def _quasi_static_graph(self, frame: Frame) -> GraphInputs:
+        """The graph on the settled rest X (velocity 0, world edges from X to the tool at t+1), with
+        :func:`tool_features` appended to the node features. x_t and x_{t-1} are not inputs."""
+        rest = self.settled_rest.to(frame.x_t.dtype)
+        g = build_graph(self.template, rest, rest, frame.tool_t, frame.tool_next, frame.pose_next)
+        tool = tool_features(self.template, rest, frame.tool_t, frame.tool_next, frame.pose_next)
+        feats = torch.cat([g.node_features, tool], dim=1)
+        if self.coarse is not None:
+            g = replace(g, coarse=coarse_edges(self.coarse, rest))
+        return replace(g, node_features=feats)
 
     def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> tuple[MultiGraph, Pooling | None]:
         """Normalise raw features (optionally accumulating statistics) and cast to the network's float32.
@@ -235,7 +291,7 @@ class Simulator(nn.Module):
         free = ~self.template.pinned
         x_t = frame.x_t
         target_pos = x_next
-        if noise and self.config.noise_std > 0:
+        if noise and self.config.noise_std > 0 and not self.config.quasi_static:  # x_t is no input there
             eps = torch.randn(x_t.shape, generator=generator, dtype=x_t.dtype) * self.config.noise_std
             eps = eps * free[:, None].to(x_t.dtype)
             x_t = x_t + eps
