@@ -141,7 +141,8 @@ class PredictorNode(Node):
         self._live = self._start_live_view(p["foxglove_port"], local[pred.surface_faces], pred.tool_faces)
 
         self.stats: dict[str, int] = {"poses_received": 0, "poses_superseded": 0, "steps": 0, "model_steps": 0,
-                                      "fallbacks": 0, "out_of_domain": 0, "resets": 0, "publish_errors": 0}
+                                      "fallbacks": 0, "out_of_domain": 0, "resets": 0, "publish_errors": 0,
+                                      "self_contact_steps": 0, "invalid_surface_steps": 0, "self_fallbacks": 0}
         self.stats.update({f"rejected_{r}": 0 for r in REJECT_REASONS})
         self._step_ms: deque[float] = deque(maxlen=STEP_WINDOW)
         self._step_times: deque[float] = deque(maxlen=STEP_WINDOW)  # time.monotonic() of each step
@@ -249,6 +250,10 @@ class PredictorNode(Node):
         st["steps"] += 1
         st["model_steps"] += res.substeps
         st["fallbacks"] += int(res.fallback)
+        # Self-contact stage: steps whose tool-corrected shape touched itself / had invalid triangles (repaired).
+        st["self_contact_steps"] += int(res.self_pairs_before > 0)
+        st["invalid_surface_steps"] += int(res.invalid_faces_before > 0)
+        st["self_fallbacks"] += int(res.self_fallback)
         if res.out_of_domain and not st["out_of_domain"]:
             self._warn("out_of_domain", "the tool or the shape is outside the model's training data: the published "
                        "shape is an extrapolation (counted in /diagnostics 'out_of_domain')")

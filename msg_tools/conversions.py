@@ -38,6 +38,11 @@ COLLISION_COUNT_LABELS: tuple[str, ...] = (
     "correction_iterations",   # iterations the correction used this step
     "fallback",                # 1 when the correction budget ran out and the safe fallback was used
     "substeps",                # model steps taken to reach this pose (large jumps are subdivided)
+    "self_pairs_before",       # object self pairs closer than the self clearance in the step, after the tool pass
+    "self_pairs_after",        # ... left after the self-contact stage (0: the object never passes through itself)
+    "invalid_faces_before",    # surface triangles flipped, collapsed or torn against rest, after the tool pass
+    "invalid_faces_after",     # ... left after the self-contact stage
+    "self_fallback",           # 1 when the self-contact stage used its certified fallback
 )
 REQUIRED_COLLISION_COUNT_LABELS: tuple[str, ...] = COLLISION_COUNT_LABELS[:4]
 

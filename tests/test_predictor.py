@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from colgnn_core.collision.exact import self_intersects
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
 from colgnn_core.io import load_sequence
@@ -68,10 +69,13 @@ def test_step_result_from_a_trained_checkpoint(scene, ckpt):
     counts = r.collision_counts()
     assert tuple(counts) == COLLISION_COUNT_LABELS
     assert counts["vertex_face_after"] == counts["edge_edge_after"] == counts["penetrating_vertices_after"] == 0
-    assert set(r.timings_ms) == {"graph", "gnn", "correction", "total"}
+    assert counts["self_pairs_after"] == counts["self_fallback"] == 0
+    assert set(r.timings_ms) == {"graph", "gnn", "correction", "self_contact", "total"}
     assert all(v >= 0 for v in r.timings_ms.values())
-    assert r.timings_ms["total"] >= r.timings_ms["graph"] + r.timings_ms["gnn"] + r.timings_ms["correction"] - 1e-6
+    ms = r.timings_ms
+    assert ms["total"] >= ms["graph"] + ms["gnn"] + ms["correction"] + ms["self_contact"] - 1e-6
     assert not oracle_intersects(r.positions, scene.object.faces, r.tool_vertices, scene.tool.faces)
+    assert not self_intersects(r.positions, scene.object.faces)
     # reset: back to rest
     p.reset()
     np.testing.assert_array_equal(p.positions, p.rest_mesh)  # the settled rest the ground truth starts from

@@ -33,7 +33,7 @@ from numba import njit
 from colgnn_core.collision.broad_phase import Surface, ToolSDFBound, step_candidates
 from colgnn_core.collision.kernels import lerp, point_triangle_distance, row3, segment_distance
 
-__all__ = ["CLEARANCE", "CLEARANCE_RATIO", "ClearanceResult", "StepClearance", "warm_up_clearance"]
+__all__ = ["CLEARANCE", "CLEARANCE_RATIO", "ClearanceResult", "StepClearance", "clearance_pairs", "warm_up_clearance"]
 
 CLEARANCE = 1.8e-4        # m: > sqrt(3) x 1e-4, the oracle's absolute clearance (max norm) in the Euclidean norm
 CLEARANCE_RATIO = 0.5     # > sqrt(3) x 0.2 = 0.35, the oracle's relative clearance likewise
@@ -110,7 +110,7 @@ def _pair_clearance(is_ee, P0, P1, delta, rho, max_iterations):
 
 
 @njit(cache=True)
-def _clearance_pairs(X0, X1, T0, T1, vf, fv, ee, faces, edges, tool_faces, tool_edges, delta, rho, max_iterations):
+def clearance_pairs(X0, X1, T0, T1, vf, fv, ee, faces, edges, tool_faces, tool_edges, delta, rho, max_iterations):
     """ok [K], t [K], d [K], d0 [K] of :func:`_pair_clearance` for the pairs vf, fv, ee (stacked in that order)."""
     K = vf.shape[0] + fv.shape[0] + ee.shape[0]
     ok = np.empty(K, dtype=np.bool_)
@@ -168,7 +168,7 @@ class StepClearance:
                                tool_pose_t0=pose0, tool_pose_t1=pose1, check=False, cache=self._cache,
                                clearance=self.clearance)
         s, ts = self.surface, self.tool_surface
-        ok, t, d, d0 = _clearance_pairs(X0, X1, T0, T1, cand.vf, cand.fv, cand.ee, s.faces, s.edges, ts.faces,
+        ok, t, d, d0 = clearance_pairs(X0, X1, T0, T1, cand.vf, cand.fv, cand.ee, s.faces, s.edges, ts.faces,
                                         ts.edges, self.clearance, self.ratio, self.max_iterations)
         out = ClearanceResult(candidates=len(ok))
         start = 0
@@ -188,5 +188,5 @@ def warm_up_clearance() -> None:
     faces = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]], dtype=np.int64)
     edges = np.array([[0, 1], [1, 2], [2, 0], [0, 3], [1, 3], [2, 3]], dtype=np.int64)
     pair = np.zeros((1, 2), dtype=np.int64)
-    _clearance_pairs(X, X + 0.1, X + 2.0, X + 1.9, pair, pair, pair, faces, edges, faces, edges, CLEARANCE,
+    clearance_pairs(X, X + 0.1, X + 2.0, X + 1.9, pair, pair, pair, faces, edges, faces, edges, CLEARANCE,
                      CLEARANCE_RATIO, MAX_ITERATIONS)

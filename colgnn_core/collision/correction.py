@@ -534,13 +534,22 @@ class CollisionCorrector:
     def _fallback(self, x0, x1, pose0, pose1, T0, T1, clearance: float = 0.0) -> int:
         """Move the region not certified to keep ``clearance`` (m) rigidly with the tool from ``x0`` (in place on
         ``x1``). Returns its size."""
+        return int(self.rigid_fallback(x0, x1, pose0, pose1, T0, T1, clearance).sum())
+
+    def rigid_fallback(self, x0, x1, pose0, pose1, T0, T1, clearance: float = 0.0,
+                       region: np.ndarray | None = None) -> np.ndarray:
+        """The certified fallback (module docstring), in place on ``x1`` [N,3]: the vertices of ``region`` (bool
+        [N], default none) and of every triangle not certified to stay farther than ``clearance`` (m) from the tool
+        over the step go to ``R x0 + p`` (rigidly with the tool from ``x0``); the others keep ``x1``. The region only
+        grows. Returns the final region (bool [N]). With ``x1 = x0`` outside the region this is the previous state
+        moved only where the tool requires (the self-contact fallback, :mod:`.self_contact`)."""
         R, p = rigid_step(pose0, pose1)
         D = float(np.sqrt(((T1 - T0) ** 2).sum(1)).max())
         S = self.surface_ids
         s0 = np.full(self.n, np.inf)
         s0[S] = self.tool.sdf(x0[S], pose0)
         rigid = x0 @ R.T + p
-        in_region = np.zeros(self.n, dtype=bool)
+        in_region = np.zeros(self.n, dtype=bool) if region is None else np.array(region, dtype=bool)
         F = self.faces
         for _ in range(len(S) + 1):  # the region only grows: at most |S| rounds (in practice 1-3)
             cand = np.where(in_region[:, None], rigid, x1)
@@ -552,7 +561,7 @@ class CollisionCorrector:
                 break
             in_region[F[~ok].ravel()] = True
         x1[in_region] = rigid[in_region]
-        return int(in_region.sum())
+        return in_region
 
 
 @njit(cache=True)

@@ -24,19 +24,19 @@ from colgnn_core.sim.dataset import simulate_sequence
 def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
     """Step ``predictor`` through ``poses[1:]`` from mesh positions ``x0`` [N,3] and ``poses[0]``, timing each step.
 
-    Returns ``stages`` ({'total', 'graph', 'gnn', 'correction'}: per-step ms lists; total = wall time of
+    Returns ``stages`` ({'total', 'graph', 'gnn', 'correction', 'self_contact'}: per-step ms lists; total = wall time of
     ``step``), ``positions`` [T,N,3] (frame 0 = x0), ``crossings_before``, ``crossings_after`` and ``fallbacks``
     and ``out_of_domain`` (totals over the steps).
     """
     predictor.reset(positions=x0, tool_pose=poses[0])
-    stages: dict[str, list[float]] = {"total": [], "graph": [], "gnn": [], "correction": []}
+    stages: dict[str, list[float]] = {"total": [], "graph": [], "gnn": [], "correction": [], "self_contact": []}
     positions = [np.asarray(x0, dtype=np.float64)]
     before = after = fallbacks = outside = 0
     for pose in poses[1:]:
         t0 = time.perf_counter()
         res = predictor.step(pose)
         stages["total"].append(1e3 * (time.perf_counter() - t0))
-        for k in ("graph", "gnn", "correction"):
+        for k in ("graph", "gnn", "correction", "self_contact"):
             stages[k].append(float(res.timings_ms.get(k, 0.0)))
         positions.append(res.positions)
         before += res.vertex_face_before + res.edge_edge_before
@@ -87,6 +87,7 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "graph_ms": stats(stages["graph"]),
         "gnn_ms": stats(stages["gnn"]),
         "correction_ms": stats(stages["correction"]),
+        "self_contact_ms": stats(stages["self_contact"]),
         "ipc_ms": ipc,
         "speedup_vs_ipc": ipc["median"] / total["median"],
         "rollout_rmse": {"step_1": float(err[1]), "step_10": float(err[min(10, len(err) - 1)]),
@@ -110,7 +111,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
 def format_bench(r: dict) -> str:
     """A readable table of one :func:`bench` result."""
     rows = [("total", r["total_ms"]), ("graph", r["graph_ms"]), ("gnn", r["gnn_ms"]),
-            ("correction", r["correction_ms"]), ("IPC solver", r["ipc_ms"])]
+            ("correction", r["correction_ms"]),
+            ("self contact", r["self_contact_ms"]), ("IPC solver", r["ipc_ms"])]
     lines = [f"{r['scene']} ({r['resolution']}): {r['vertices']} vertices, {r['edges']} surface edges, "
              f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} "
              f"threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",

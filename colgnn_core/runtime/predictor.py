@@ -46,6 +46,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, CollisionCorrector
+from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses
 from colgnn_core.learn.core_model import EdgeSet
@@ -76,7 +77,9 @@ TRIM_EVERY = 200           # model steps between returns of freed heap memory to
 DOMAIN_RADIUS_FACTOR = 2.0
 DOMAIN_DEVIATION_FACTOR = 1.25
 COUNT_LABELS = ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
-                "penetrating_vertices_after", "correction_iterations", "fallback", "substeps")
+                "penetrating_vertices_after", "correction_iterations", "fallback", "substeps",
+                "self_pairs_before", "self_pairs_after", "invalid_faces_before", "invalid_faces_after",
+                "self_fallback")
 
 
 @dataclass
@@ -89,8 +92,13 @@ class StepResult:
     Counts are summed over the substeps (``*_before``: crossings in the raw network output;
     ``*_after``: crossings the fast check finds after correction); ``interior_cleared``: interior mesh vertices
     the lifting had put inside the tool, moved out (published state only); ``published_moved``: with substeps,
-    surface vertices the correction of the whole published step moved (module docstring). timings_ms: graph,
-    gnn, correction, total (ms, summed over substeps).
+    surface vertices the correction of the whole published step moved (module docstring).
+    Self-contact stage (:mod:`colgnn_core.collision.self_contact`, on the published step): ``self_pairs_before`` /
+    ``invalid_faces_before``: object self pairs closer than the self clearance during the step and flipped, collapsed
+    or torn triangles after the tool pass; ``*_after``: what is left after the stage (0 but for rotated triangles of
+    its fallback); ``self_fallback``: its certified fallback was used; ``self_moved``: vertices it moved.
+    timings_ms: graph, gnn, correction (the tool pass), self_contact (the self stage, its repeated tool passes
+    included), total (ms, summed over substeps).
     """
 
     positions: np.ndarray
@@ -110,6 +118,12 @@ class StepResult:
     substeps: int = 1
     published_moved: int = 0
     out_of_domain: int = 0     # model steps of this call outside the training domain (Predictor.outside_domain)
+    self_pairs_before: int = 0
+    self_pairs_after: int = 0
+    invalid_faces_before: int = 0
+    invalid_faces_after: int = 0
+    self_fallback: bool = False
+    self_moved: int = 0
     timings_ms: dict = field(default_factory=dict)
 
     @property
@@ -131,6 +145,7 @@ class PredictorState:
     tool_vertices: np.ndarray  # [M,3] the tool at the current pose (world)
     steps: int = 0             # model steps since reset
     fallbacks: int = 0         # steps whose correction used the fallback since reset
+    self_fallbacks: int = 0    # published steps whose self-contact stage used its fallback since reset
     relaxed_steps: int = 0     # model steps relaxed towards rest since reset
     free_steps: int = 0        # consecutive released model steps (the settle ramp's clock; see Predictor._released)
     out_of_domain: int = 0     # model steps outside the training domain since reset
@@ -224,12 +239,15 @@ class Predictor:
             ``SETTLE_RAMP_STEPS`` (a distorted network state can hold a deformation against a constant small
             rate: x* - rest = network acceleration / a). 0 (default): off. GNN models only; applied before
             the correction, so the guarantee is unchanged.
+        self_contact: run the self-contact stage after the tool pass (with ``correction``): the published object
+            never passes through itself and its surface stays valid (docs/COLLISION_GUARANTEE.md).
     """
 
     def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
                  threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
-                 max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0):
+                 max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0,
+                 self_contact: bool = True):
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
         if not 0.0 <= rest_relaxation < 1.0:
@@ -267,6 +285,8 @@ class Predictor:
         self.tool_faces = np.asarray(scene.tool.faces, dtype=np.int64)
         self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
                                              max_iterations=max_iterations) if self.correction else None)
+        self.self_contact = (SelfContact(tpl.surface_faces, tpl.num_object_nodes, self.net.rest.numpy())
+                             if self.corrector is not None and self_contact else None)
         self.state: PredictorState | None = None
         self._since_trim = 0
         self.reset()
@@ -388,13 +408,15 @@ class Predictor:
         res = StepResult(positions=self.state.mesh, surface_faces=self.surface_faces,
                          surface_vertex_ids=self.surface_vertex_ids, tool_vertices=None, tool_faces=self.tool_faces,
                          tool_pose=pose, substeps=n)
-        ms = {"graph": 0.0, "gnn": 0.0, "correction": 0.0}
+        ms = {"graph": 0.0, "gnn": 0.0, "correction": 0.0, "self_contact": 0.0}
         saved = (self.net.state, self.state)
         try:
             for sp in subposes:
                 self._model_step(sp, res, ms, clearance=n == 1)
             if n > 1 and self.corrector is not None:
                 self._correct_published(saved[0], pose, res, ms)
+            if self.self_contact is not None:
+                self._correct_self(saved[0], pose, res, ms)
         except BaseException:
             # A failure inside a model step (e.g. non-finite network output) leaves the state as it was.
             self.net.state, self.state = saved
@@ -427,6 +449,23 @@ class Predictor:
             self.state = replace(self.state, fallbacks=self.state.fallbacks + 1)
         if c.moved:
             self.net.state = replace(now, x_t=torch.from_numpy(c.positions))
+
+    def _correct_self(self, start, pose: np.ndarray, res: StepResult, ms: dict) -> None:
+        """The self-contact stage on the published step: the straight motion from the last published state
+        (``start``, the network state then; self-clean and valid by induction) to the tool-corrected result."""
+        now = self.net.state
+        t = time.perf_counter()
+        s = self.self_contact.correct(self.corrector, start.x_t.numpy(), now.x_t.numpy(), start.pose, pose,
+                                      start.tool_t.numpy(), now.tool_t.numpy(), clearance=True)
+        ms["self_contact"] += 1e3 * (time.perf_counter() - t)
+        res.self_pairs_before, res.self_pairs_after = s.pairs_before, s.pairs_after
+        res.invalid_faces_before, res.invalid_faces_after = s.invalid_before, s.invalid_after
+        res.self_fallback, res.self_moved = s.fallback, s.moved
+        res.fallback = res.fallback or s.tool_fallback  # a tool pass after a self repair fell back
+        if s.fallback:
+            self.state = replace(self.state, self_fallbacks=self.state.self_fallbacks + 1)
+        if s.moved:
+            self.net.state = replace(now, x_t=torch.from_numpy(s.positions))
 
     def _model_step(self, pose_next: np.ndarray, res: StepResult, ms: dict, clearance: bool = True) -> None:
         net = self.net

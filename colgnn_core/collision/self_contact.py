@@ -1,0 +1,591 @@
+"""Self-contact in the correction: the object never passes through itself, and its surface stays valid.
+
+After the tool pass (:class:`~colgnn_core.collision.correction.CollisionCorrector`) has made the step x0 -> x1 safe
+against the tool, this stage makes it safe against the object itself. Input: the previous published state ``x0``
+(self-clean and valid, by induction) and the tool-corrected proposal ``x1``. Output: positions ``x1'`` such that
+
+* over the straight motion x0 -> x1', every *non-adjacent* pair of object-surface primitives (a vertex and a
+  triangle not containing it, two edges without a common vertex) stays farther apart than
+  min(SELF_CLEARANCE, SELF_RATIO x its distance in x0), hence no self-contact during the step and no
+  self-intersection in x1' (x0 having none: a new intersection must start with such a contact);
+* no triangle of x1' is flipped, collapsed or torn against the rest shape (:mod:`.surface_validity`), except in the
+  one case stated under *Fallback*;
+* the tool guarantee of the tool pass still holds for x0 -> x1' (every repair is followed by the tool pass again,
+  and the fallback is certified for both).
+
+Detection ("check"). Only near the deformed region: a surface vertex is *hot* when it is farther than ``quiet`` (m)
+from its rest position at t or t+1. A pair of primitives whose vertices are all quiet cannot come closer than
+their rest distance minus 2 quiet (every point of a primitive stays within ``quiet`` of its rest point all step, the
+straight motion being a convex combination), so such pairs are examined only if they are within 2 quiet +
+SELF_CLEARANCE at rest (a list built once). Pairs with a hot vertex come from swept boxes grown by SELF_CLEARANCE
+(the hot primitives against every primitive whose box meets the hot region's box): boxes farther apart than that
+cannot hold points closer than it. Every candidate gets the additive CCD of :mod:`.clearance` (conservative: a pair
+is passed only when its distance provably stays above the threshold), the object standing in for the tool.
+
+Repair, up to ``max_rounds`` rounds, each followed by the tool pass:
+
+1. invalid triangles: their vertices and one ring around them take the displacement x1 - x0 of their neighbours
+   (a harmonic fill: the patch follows the surface around it, its own distortion removed); from round
+   ``FILL_ROUNDS`` on they return to x0 (valid) instead;
+2. self pairs: moved apart at t+1 along their separation at the time t* the CCD found, by
+   (SELF_TARGET - d*) / t* split over the pair's four vertices with minimal-norm barycentric weights (the tool
+   pass's pushes, both primitives movable); from round ``PUSH_ROUNDS`` on the pair's vertices and a ring
+   return to x0 instead (a pair whose vertices all stay put keeps its x0 distance).
+
+Fallback, when the rounds run out: the previous published state moved only where the tool requires. Surface vertices
+start at x0; the tool's certified fallback (:meth:`CollisionCorrector.rigid_fallback`) moves the region it cannot
+certify rigidly with the tool (R x0 + p). Then, repeatedly, every pair and triangle with vertices both inside and
+outside the region is checked (CCD, validity); the vertices of a failing one join the region, and the tool
+certificate is redone. Safety (x0 self-clean and valid):
+
+* a pair with all four vertices outside the region does not move: its distance stays the x0 distance
+  > SELF_RATIO x it;
+* a pair inside the region moves by one affine map y(s) = [(1-s) I + s R] y0 + s p, whose smallest singular value
+  is cos(theta/2) >= 1/2 > SELF_RATIO for a tool turn theta <= 120 degrees (the Predictor refuses larger turns): its
+  distance stays >= d0 / 2;
+* mixed pairs are checked, and a failing one grows the region by at least one vertex, so the loop ends; in the limit
+  the whole surface moves rigidly (safe for the tool and for itself);
+* the tool: the certificate of :mod:`.correction`, redone for the final region.
+
+Validity under the fallback: triangles outside the region are x0's (valid); mixed triangles are checked (else they
+join the region); a triangle inside the region keeps its edge lengths and area, and its normal turns by the tool's
+rotation theta, so it can flip only if its x0 normal was within theta of 90 degrees from its rest normal. That case is
+not repaired (nothing safe is left to move): it is counted in ``invalid_after``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from colgnn_core.collision.broad_phase import Surface
+from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
+from colgnn_core.collision.correction import CollisionCorrector
+from colgnn_core.collision.kernels import (box_join, point_triangle, point_triangle_distance, prim_boxes, row3,
+                                           segment_distance, segment_params, vertex_boxes)
+from colgnn_core.collision.surface_validity import SurfaceValidity
+from colgnn_core.errors import InputError
+
+__all__ = ["SELF_CLEARANCE", "SELF_RATIO", "SELF_TARGET", "SelfCheck", "SelfContact", "SelfResult",
+           "warm_up_self_contact"]
+
+SELF_CLEARANCE = 5e-5   # m: no two non-adjacent surface primitives come closer during a step ...
+SELF_RATIO = 0.4        # ... unless they started closer than SELF_CLEARANCE / SELF_RATIO: then this x d0
+SELF_TARGET = 1e-4      # m: the gap a self push aims for at the time the CCD found
+QUIET_FRACTION = 0.25   # quiet = this x the median rest edge: a vertex within it of rest is not "hot"
+MAX_ROUNDS = 6          # repair rounds (each followed by the tool pass) before the fallback
+FILL_ROUNDS = 2         # rounds in which invalid patches follow their neighbours; later: back to x0
+PUSH_ROUNDS = 3         # rounds in which self pairs are pushed apart; later: back to x0
+FILL_ITERATIONS = 30    # Jacobi sweeps of the harmonic fill
+MIN_PUSH_TIME = 0.05    # a push at t+1 is (target - d*) / max(t*, this)
+_NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
+
+
+@dataclass
+class SelfCheck:
+    """What one check of a step found.
+
+    vf (vertex, face) and ee (edge, edge) [K,2]: pairs that may come closer than the threshold; t, d: per kind [K]
+    the time in [0,1] and distance (m) where the CCD found it; invalid: bool [F] triangles invalid at t+1;
+    candidates: pairs examined; hot: surface vertices counted hot.
+    """
+
+    vf: np.ndarray = field(default_factory=lambda: _NO_PAIRS)
+    ee: np.ndarray = field(default_factory=lambda: _NO_PAIRS)
+    t: dict = field(default_factory=dict)
+    d: dict = field(default_factory=dict)
+    invalid: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    candidates: int = 0
+    hot: int = 0
+
+    @property
+    def pairs(self) -> int:
+        return len(self.vf) + len(self.ee)
+
+    @property
+    def clean(self) -> bool:
+        return self.pairs == 0 and not self.invalid.any()
+
+
+@dataclass
+class SelfResult:
+    """What :meth:`SelfContact.correct` did.
+
+    positions: [N,3] the output (a new array); pairs_before / invalid_before: self pairs and invalid triangles in the
+    tool-corrected input; pairs_after / invalid_after: in the output (0 unless the fallback left a rotated triangle
+    flipped, module docstring); rounds: repair rounds used; fallback: the self fallback was used; region: its rigid
+    region (vertices); tool_fallback: a tool pass after a repair used the tool's fallback; moved: vertices whose
+    position differs from the input; timings_ms: check, repair, tool, fallback, total.
+    """
+
+    positions: np.ndarray
+    pairs_before: int = 0
+    invalid_before: int = 0
+    pairs_after: int = 0
+    invalid_after: int = 0
+    rounds: int = 0
+    fallback: bool = False
+    region: int = 0
+    tool_fallback: bool = False
+    moved: int = 0
+    timings_ms: dict = field(default_factory=dict)
+
+
+class SelfContact:
+    """Self-contact and surface validity for one object surface (build once per scene).
+
+    Args:
+        faces: [F,3] object surface triangles (outward) indexing position arrays of ``n_vertices`` rows.
+        n_vertices: rows of the position arrays.
+        rest: [N,3] the rest positions (m) validity and "hot" refer to (the settled rest); self-clean.
+        quiet: m; default QUIET_FRACTION x the median rest edge.
+        max_rounds: repair rounds before the fallback.
+    """
+
+    def __init__(self, faces: np.ndarray, n_vertices: int, rest: np.ndarray, *, quiet: float | None = None,
+                 max_rounds: int = MAX_ROUNDS):
+        self.surface = Surface.from_faces(faces, n_vertices, name="object")
+        self.n = int(n_vertices)
+        self.rest = np.ascontiguousarray(rest, dtype=np.float64)
+        if self.rest.shape != (self.n, 3) or not np.all(np.isfinite(self.rest)):
+            raise InputError(f"rest must be a finite [{self.n},3] array, got shape {self.rest.shape}")
+        if max_rounds < 0:
+            raise InputError(f"max_rounds must be >= 0, got {max_rounds}")
+        self.max_rounds = int(max_rounds)
+        self.S = self.surface.vertices
+        E = self.surface.edges
+        lengths = np.linalg.norm(self.rest[E[:, 0]] - self.rest[E[:, 1]], axis=1)
+        self.quiet = float(QUIET_FRACTION * np.median(lengths)) if quiet is None else float(quiet)
+        self.validity = SurfaceValidity(self.surface.faces, self.rest)
+        self.neighbours = _vertex_neighbours(E, self.n)
+        warm_up_self_contact()
+        reach = 2.0 * self.quiet + SELF_CLEARANCE
+        every = np.zeros(self.n, dtype=np.bool_)
+        every[self.S] = True
+        vf, ee = _candidates(self.rest, self.rest, every, self.S, self.surface.faces, E, reach)
+        (self.rest_vf, self.rest_vf_d, self.rest_ee, self.rest_ee_d,
+         self.rest_gap) = _close_pairs(self.rest, vf, ee, self.surface.faces, E, reach)
+        # The induction starts at rest: its pairs must be apart (a pair closer than ~1e-7 m is always flagged).
+        if not self.rest_gap > 1e-6:
+            raise InputError(f"the rest surface touches itself (closest non-adjacent pair {self.rest_gap:.3g} m)")
+
+    # -- detection ------------------------------------------------------------------------------------------------
+    def hot(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+        """Bool [N]: surface vertices farther than ``quiet`` from rest at t or t+1."""
+        hot = np.zeros(self.n, dtype=np.bool_)
+        S, q2 = self.S, self.quiet * self.quiet
+        hot[S] = (((x0[S] - self.rest[S]) ** 2).sum(1) > q2) | (((x1[S] - self.rest[S]) ** 2).sum(1) > q2)
+        return hot
+
+    def check(self, x0: np.ndarray, x1: np.ndarray, *, moving: np.ndarray | None = None) -> SelfCheck:
+        """Self pairs of the straight step x0 -> x1 ([N,3] m) that may come closer than the threshold, and the
+        triangles invalid in x1.
+
+        ``moving``: bool [N] (the fallback): only vertices marked move, the others stay at x0; pairs with all four
+        vertices moving are skipped (one affine map, module docstring) and the quiet argument is not used."""
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        x1 = np.ascontiguousarray(x1, dtype=np.float64)
+        F, E = self.surface.faces, self.surface.edges
+        hot = self.hot(x0, x1) if moving is None else moving
+        vf, ee = _candidates(x0, x1, hot, self.S, F, E, SELF_CLEARANCE)
+        if moving is None:
+            dev = np.zeros(self.n)
+            S = self.S
+            dev[S] = np.sqrt(np.maximum(((x0[S] - self.rest[S]) ** 2).sum(1), ((x1[S] - self.rest[S]) ** 2).sum(1)))
+            vf = np.concatenate([vf, self.rest_vf[_rest_pairs_needed(self.rest_vf, self.rest_vf_d, dev, hot, F, E,
+                                                                     False, SELF_CLEARANCE)]])
+            ee = np.concatenate([ee, self.rest_ee[_rest_pairs_needed(self.rest_ee, self.rest_ee_d, dev, hot, F, E,
+                                                                     True, SELF_CLEARANCE)]])
+        else:
+            vf = vf[~_all_hot(vf, F, E, hot, False)]
+            ee = ee[~_all_hot(ee, F, E, hot, True)]
+        empty = _NO_PAIRS
+        ok, t, d, _ = clearance_pairs(x0, x1, x0, x1, vf, empty, ee, F, E, F, E, SELF_CLEARANCE, SELF_RATIO,
+                                      MAX_ITERATIONS)
+        out = SelfCheck(candidates=len(ok), hot=int(hot.sum()), invalid=self.validity.invalid(x1))
+        nv = len(vf)
+        bad_vf, bad_ee = ~ok[:nv], ~ok[nv:]
+        out.vf, out.ee = vf[bad_vf], ee[bad_ee]
+        out.t = {"vf": t[:nv][bad_vf], "ee": t[nv:][bad_ee]}
+        out.d = {"vf": d[:nv][bad_vf], "ee": d[nv:][bad_ee]}
+        return out
+
+    def pair_vertices(self, chk: SelfCheck) -> np.ndarray:
+        """Sorted unique vertex ids [K] of the flagged pairs of ``chk``."""
+        F, E = self.surface.faces, self.surface.edges
+        return np.unique(np.concatenate([chk.vf[:, 0], F[chk.vf[:, 1]].ravel(), E[chk.ee].ravel()]))
+
+    # -- the stage ------------------------------------------------------------------------------------------------
+    def correct(self, corrector: CollisionCorrector, x0: np.ndarray, x1: np.ndarray, pose0, pose1, T0, T1, *,
+                clearance: bool = True) -> SelfResult:
+        """The self stage for the step x0 -> x1 ([N,3] m; ``x1`` already through ``corrector``) with the tool
+        ``pose0 -> pose1`` (tool vertices T0, T1 [M,3]); ``clearance`` as for the tool pass (module docstring)."""
+        t_start = time.perf_counter()
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        x = np.array(x1, dtype=np.float64)
+        ms = {"check": 0.0, "repair": 0.0, "tool": 0.0, "fallback": 0.0}
+        out = SelfResult(positions=x)
+        clean = False
+        for r in range(self.max_rounds + 1):
+            t = time.perf_counter()
+            chk = self.check(x0, x)
+            ms["check"] += 1e3 * (time.perf_counter() - t)
+            if r == 0:
+                out.pairs_before, out.invalid_before = chk.pairs, int(chk.invalid.sum())
+            out.rounds = r
+            if chk.clean:
+                clean = True
+                break
+            if r == self.max_rounds:
+                break
+            t = time.perf_counter()
+            x = self._repair(chk, x0, x, r)
+            ms["repair"] += 1e3 * (time.perf_counter() - t)
+            t = time.perf_counter()
+            c = corrector.correct(x0, x, pose0, pose1, T0, T1, clearance=clearance)
+            ms["tool"] += 1e3 * (time.perf_counter() - t)
+            x = c.positions
+            out.tool_fallback |= c.fallback
+        if not clean:
+            t = time.perf_counter()
+            x, region = self._fallback(corrector, x0, x, pose0, pose1, T0, T1, clearance)
+            out.fallback, out.region = True, int(region.sum())
+            out.invalid_after = int(self.validity.invalid(x).sum())
+            ms["fallback"] = 1e3 * (time.perf_counter() - t)
+        out.positions = x
+        out.moved = int(np.sum(np.any(x != np.asarray(x1), axis=1)))
+        ms["total"] = 1e3 * (time.perf_counter() - t_start)
+        out.timings_ms = ms
+        return out
+
+    def _repair(self, chk: SelfCheck, x0: np.ndarray, x: np.ndarray, r: int) -> np.ndarray:
+        """One repair round (module docstring) on a copy of x."""
+        F = self.surface.faces
+        x = x.copy()
+        patch = np.zeros(self.n, dtype=np.bool_)
+        patch[F[chk.invalid].ravel()] = True
+        if r >= PUSH_ROUNDS and chk.pairs:
+            patch[self.pair_vertices(chk)] = True
+        if patch.any():
+            patch = _grow(patch, *self.neighbours)
+            disp = x - x0
+            if r < FILL_ROUNDS:
+                disp = _harmonic_fill(disp, patch, *self.neighbours, FILL_ITERATIONS)
+            else:
+                disp[patch] = 0.0
+            x[patch] = x0[patch] + disp[patch]
+        if r < PUSH_ROUNDS and chk.pairs:
+            vid, push = self._pushes(chk, x0, x)
+            keep = ~patch[vid]
+            x[vid[keep]] += push[keep]
+        return x
+
+    def _pushes(self, chk: SelfCheck, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Averaged displacements at t+1 (vertex ids [K], [K,3]) moving each flagged pair apart along its separation
+        at t*, by (SELF_TARGET - d*) / t* over the four vertices with minimal-norm weights c_k / sum c^2 (the
+        separation grows by exactly that amount at first order)."""
+        vids, disps = [], []
+        F, E = self.surface.faces, self.surface.edges
+        for kind, pairs in (("vf", chk.vf), ("ee", chk.ee)):
+            if len(pairs) == 0:
+                continue
+            t = chk.t[kind]
+            amount = (SELF_TARGET - chk.d[kind]) / np.maximum(t, MIN_PUSH_TIME)
+            if kind == "vf":
+                ids = np.concatenate([pairs[:, :1], F[pairs[:, 1]]], axis=1)
+            else:
+                ids = np.concatenate([E[pairs[:, 0]], E[pairs[:, 1]]], axis=1)
+            n, c = _separation(x0, x1, ids, t, kind == "ee")
+            scale = amount / (c * c).sum(1)
+            for k in range(4):
+                vids.append(ids[:, k])
+                disps.append((scale * c[:, k])[:, None] * n)
+        vid, disp = np.concatenate(vids), np.concatenate(disps)
+        uniq, inv = np.unique(vid, return_inverse=True)
+        cnt = np.bincount(inv, minlength=len(uniq)).astype(np.float64)
+        acc = np.stack([np.bincount(inv, weights=disp[:, k], minlength=len(uniq)) for k in range(3)], axis=1)
+        return uniq, acc / cnt[:, None]
+
+    def _fallback(self, corrector: CollisionCorrector, x0, x, pose0, pose1, T0, T1, clearance: bool
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """The self-and-tool fallback (module docstring): (positions [N,3], rigid region bool [N])."""
+        S, F = self.S, self.surface.faces
+        c = corrector.clearance.clearance if clearance else 0.0
+        base = x.copy()
+        base[S] = x0[S]  # non-surface graph nodes keep their values: they take no part in contact
+        region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c)
+        for _ in range(len(S) + 1):  # every round adds a vertex: at most |S| rounds (in practice a few)
+            chk = self.check(x0, base, moving=region)
+            mixed = chk.invalid & ~region[F].all(axis=1)
+            grow = np.zeros(self.n, dtype=np.bool_)
+            grow[F[mixed].ravel()] = True
+            if chk.pairs:
+                grow[self.pair_vertices(chk)] = True
+            if not (grow & ~region).any():
+                break
+            # One ring more than needed: fewer rounds (each is a check) for the same guarantee.
+            grow = _grow(grow, *self.neighbours)
+            region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c, region=region | grow)
+        return base, region
+
+
+# ------------------------------------------------------------------------------------------------------ kernels
+def _vertex_neighbours(edges: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (offsets [n+1], neighbour ids) of the surface graph."""
+    both = np.concatenate([edges, edges[:, ::-1]])
+    order = np.argsort(both[:, 0], kind="stable")
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(both[:, 0], minlength=n), out=offsets[1:])
+    return offsets, np.ascontiguousarray(both[order, 1])
+
+
+@njit(cache=True)
+def _grow(mask, offsets, nbrs):
+    """mask [N] bool plus one ring of neighbours."""
+    out = mask.copy()
+    for v in range(mask.shape[0]):
+        if mask[v]:
+            for q in range(offsets[v], offsets[v + 1]):
+                out[nbrs[q]] = True
+    return out
+
+
+@njit(cache=True)
+def _harmonic_fill(disp, patch, offsets, nbrs, iterations):
+    """Displacements [N,3] with the rows of ``patch`` replaced by the mean of their neighbours' (Jacobi sweeps;
+    rows outside the patch are the boundary values)."""
+    out = disp.copy()
+    for v in range(patch.shape[0]):
+        if patch[v]:
+            out[v, 0] = out[v, 1] = out[v, 2] = 0.0
+    nxt = out.copy()
+    for _ in range(iterations):
+        for v in range(patch.shape[0]):
+            if not patch[v]:
+                continue
+            k = offsets[v + 1] - offsets[v]
+            if k == 0:
+                continue
+            s0 = s1 = s2 = 0.0
+            for q in range(offsets[v], offsets[v + 1]):
+                u = nbrs[q]
+                s0 += out[u, 0]
+                s1 += out[u, 1]
+                s2 += out[u, 2]
+            nxt[v, 0], nxt[v, 1], nxt[v, 2] = s0 / k, s1 / k, s2 / k
+        for v in range(patch.shape[0]):
+            if patch[v]:
+                out[v, 0], out[v, 1], out[v, 2] = nxt[v, 0], nxt[v, 1], nxt[v, 2]
+    return out
+
+
+@njit(cache=True)
+def _in_face(v, faces, f):
+    return faces[f, 0] == v or faces[f, 1] == v or faces[f, 2] == v
+
+
+@njit(cache=True)
+def _share(edges, a, b):
+    return (edges[a, 0] == edges[b, 0] or edges[a, 0] == edges[b, 1] or edges[a, 1] == edges[b, 0]
+            or edges[a, 1] == edges[b, 1])
+
+
+@njit(cache=True)
+def _candidates(X0, X1, hot, S, faces, edges, grow):
+    """Non-adjacent (vertex, face) [K,2] and (edge, edge) [J,2] pairs with a hot vertex whose swept boxes come within
+    ``grow`` (m): the hot primitives against every primitive whose box meets the hot region's box."""
+    nh = 0
+    for v in S:
+        nh += hot[v]
+    if nh == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
+    hot_f = np.zeros(faces.shape[0], dtype=np.bool_)
+    for f in range(faces.shape[0]):
+        hot_f[f] = hot[faces[f, 0]] or hot[faces[f, 1]] or hot[faces[f, 2]]
+    hot_e = np.zeros(edges.shape[0], dtype=np.bool_)
+    for e in range(edges.shape[0]):
+        hot_e[e] = hot[edges[e, 0]] or hot[edges[e, 1]]
+    hv = np.empty(nh, dtype=np.int64)
+    k = 0
+    for v in S:
+        if hot[v]:
+            hv[k] = v
+            k += 1
+    hf, he = np.flatnonzero(hot_f), np.flatnonzero(hot_e)
+    flo, fhi = prim_boxes(X0, X1, faces, hf)
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):  # the hot region's box (hot faces hold every hot vertex and edge), grown
+        lo[a] = flo[:, a].min() - grow
+        hi[a] = fhi[:, a].max() + grow
+    near_f = _inside(prim_boxes(X0, X1, faces, np.arange(faces.shape[0])), lo, hi)
+    near_e = _inside(prim_boxes(X0, X1, edges, np.arange(edges.shape[0])), lo, hi)
+    near_v = S[_inside(vertex_boxes(X0, X1, S), lo, hi)]
+    nflo, nfhi = prim_boxes(X0, X1, faces, near_f)
+    vlo, vhi = vertex_boxes(X0, X1, hv)
+    p1 = box_join(vlo - grow, vhi + grow, nflo, nfhi)
+    nvlo, nvhi = vertex_boxes(X0, X1, near_v)
+    p2 = box_join(nvlo, nvhi, flo - grow, fhi + grow)
+    vf = np.empty((p1.shape[0] + p2.shape[0], 2), dtype=np.int64)
+    k = 0
+    for r in range(p1.shape[0]):
+        v, f = hv[p1[r, 0]], near_f[p1[r, 1]]
+        if not _in_face(v, faces, f):
+            vf[k, 0], vf[k, 1] = v, f
+            k += 1
+    for r in range(p2.shape[0]):
+        v, f = near_v[p2[r, 0]], hf[p2[r, 1]]
+        if not hot[v] and not _in_face(v, faces, f):  # hot vertices were paired above
+            vf[k, 0], vf[k, 1] = v, f
+            k += 1
+    elo, ehi = prim_boxes(X0, X1, edges, he)
+    nelo, nehi = prim_boxes(X0, X1, edges, near_e)
+    p3 = box_join(elo - grow, ehi + grow, nelo, nehi)
+    ee = np.empty((p3.shape[0], 2), dtype=np.int64)
+    j = 0
+    for r in range(p3.shape[0]):
+        a, b = he[p3[r, 0]], near_e[p3[r, 1]]
+        if (not hot_e[b] or a < b) and not _share(edges, a, b):  # a pair of hot edges is found twice: keep one
+            ee[j, 0], ee[j, 1] = a, b
+            j += 1
+    return vf[:k].copy(), ee[:j].copy()
+
+
+@njit(cache=True)
+def _inside(boxes, lo, hi):
+    """Ids [K] of the boxes (lo [K,3], hi [K,3]) that meet the box [lo, hi]."""
+    blo, bhi = boxes
+    keep = np.zeros(blo.shape[0], dtype=np.bool_)
+    for i in range(blo.shape[0]):
+        keep[i] = ((blo[i, 0] <= hi[0]) & (lo[0] <= bhi[i, 0]) & (blo[i, 1] <= hi[1]) & (lo[1] <= bhi[i, 1])
+                   & (blo[i, 2] <= hi[2]) & (lo[2] <= bhi[i, 2]))
+    return np.flatnonzero(keep)
+
+
+def _close_pairs(X, vf, ee, faces, edges, reach) -> tuple:
+    """(vf pairs of X within ``reach`` m, their distances, ee pairs likewise, their distances, the smallest distance
+    of any non-adjacent pair in X (m; inf if none within reach))."""
+    dv = _pair_distances(X, vf, ee, faces, edges)
+    near = dv <= reach
+    nv = len(vf)
+    gap = float(dv.min()) if len(dv) else np.inf
+    return vf[near[:nv]], dv[:nv][near[:nv]], ee[near[nv:]], dv[nv:][near[nv:]], gap
+
+
+@njit(cache=True)
+def _rest_pairs_needed(pairs, d_rest, dev, hot, faces, edges, is_ee, clearance):
+    """Bool [K]: rest-close pairs to examine this step. A pair with a hot vertex is examined with the hot primitives;
+    a quiet one only if its rest distance minus the largest deviation from rest of each primitive's vertices (``dev``
+    [N], m, over both ends: it bounds every point's deviation during the step) is not above ``clearance``."""
+    keep = np.zeros(pairs.shape[0], dtype=np.bool_)
+    for k in range(pairs.shape[0]):
+        if is_ee:
+            a = (edges[pairs[k, 0], 0], edges[pairs[k, 0], 1])
+            b = (edges[pairs[k, 1], 0], edges[pairs[k, 1], 1], edges[pairs[k, 1], 1])
+        else:
+            a = (pairs[k, 0], pairs[k, 0])
+            f = pairs[k, 1]
+            b = (faces[f, 0], faces[f, 1], faces[f, 2])
+        if hot[a[0]] or hot[a[1]] or hot[b[0]] or hot[b[1]] or hot[b[2]]:
+            continue
+        qa = max(dev[a[0]], dev[a[1]])
+        qb = max(dev[b[0]], dev[b[1]], dev[b[2]])
+        keep[k] = d_rest[k] - qa - qb <= clearance
+    return keep
+
+
+@njit(cache=True)
+def _pair_distances(X, vf, ee, faces, edges):
+    out = np.empty(vf.shape[0] + ee.shape[0])
+    for k in range(vf.shape[0]):
+        f = vf[k, 1]
+        out[k] = point_triangle_distance(row3(X, vf[k, 0]), row3(X, faces[f, 0]), row3(X, faces[f, 1]),
+                                         row3(X, faces[f, 2]))
+    for k in range(ee.shape[0]):
+        a, b = ee[k, 0], ee[k, 1]
+        out[vf.shape[0] + k] = segment_distance(row3(X, edges[a, 0]), row3(X, edges[a, 1]), row3(X, edges[b, 0]),
+                                                row3(X, edges[b, 1]))[0]
+    return out
+
+
+def _all_hot(pairs, faces, edges, hot, is_ee) -> np.ndarray:
+    """Bool [K]: pairs all of whose vertices are hot (moving)."""
+    return ~_any_vertex(pairs, faces, edges, ~hot, is_ee)
+
+
+def _any_vertex(pairs, faces, edges, mask, is_ee) -> np.ndarray:
+    """Bool [K]: pairs (vertex, face) or (edge, edge) with a vertex in ``mask`` [N]."""
+    if len(pairs) == 0:
+        return np.zeros(0, dtype=bool)
+    ids = (np.concatenate([edges[pairs[:, 0]], edges[pairs[:, 1]]], axis=1) if is_ee
+           else np.concatenate([pairs[:, :1], faces[pairs[:, 1]]], axis=1))
+    return mask[ids].any(axis=1)
+
+
+def _separation(x0, x1, ids, t, is_ee) -> tuple[np.ndarray, np.ndarray]:
+    """(unit separation n [K,3] from the second primitive to the first at time t [K], signed weights c [K,4]) of
+    pairs ``ids`` [K,4] (vertex + triangle, or edge + edge): the gap along n changes by sum_k c_k (dx_k . n)."""
+    P = x0[ids] + t[:, None, None] * (x1[ids] - x0[ids])  # [K,4,3]
+    return _separation_kernel(np.ascontiguousarray(P), is_ee)
+
+
+@njit(cache=True)
+def _separation_kernel(P, is_ee):
+    K = P.shape[0]
+    n = np.empty((K, 3))
+    c = np.empty((K, 4))
+    for k in range(K):
+        p0, p1, p2, p3 = row3(P[k], 0), row3(P[k], 1), row3(P[k], 2), row3(P[k], 3)
+        if is_ee:
+            a, b = segment_params(p0, p1, p2, p3)
+            w = (1.0 - a, a, -(1.0 - b), -b)
+        else:
+            _, w1, w2, w3 = point_triangle(p0, p1, p2, p3)
+            w = (1.0, -w1, -w2, -w3)
+        s = [0.0, 0.0, 0.0]
+        for i in range(3):
+            s[i] = w[0] * P[k, 0, i] + w[1] * P[k, 1, i] + w[2] * P[k, 2, i] + w[3] * P[k, 3, i]
+        norm = np.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+        if norm > 0:
+            n[k, 0], n[k, 1], n[k, 2] = s[0] / norm, s[1] / norm, s[2] / norm
+        else:  # touching: fall back to the triangle's normal / the edges' common normal
+            if is_ee:
+                u = (p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2])
+                v = (p3[0] - p2[0], p3[1] - p2[1], p3[2] - p2[2])
+            else:
+                u = (p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2])
+                v = (p3[0] - p1[0], p3[1] - p1[1], p3[2] - p1[2])
+            m = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+            mn = max(np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]), 1e-300)
+            n[k, 0], n[k, 1], n[k, 2] = m[0] / mn, m[1] / mn, m[2] / mn
+        for i in range(4):
+            c[k, i] = w[i]
+    return n, c
+
+
+_READY = False
+
+
+def warm_up_self_contact() -> None:
+    """Load (the first time on a machine: compile) the stage's numba kernels on a tiny case."""
+    global _READY
+    if _READY:
+        return
+    faces = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]], dtype=np.int64)
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    s = Surface.from_faces(faces, 4)
+    hot = np.ones(4, dtype=np.bool_)
+    vf, ee = _candidates(X, X + 0.01, hot, s.vertices, faces, s.edges, 0.1)
+    _pair_distances(X, vf, ee, faces, s.edges)
+    for pairs, is_ee in ((vf, False), (ee, True)):
+        _rest_pairs_needed(pairs, np.zeros(len(pairs)), np.zeros(4), hot, faces, s.edges, is_ee, 0.0)
+    off, nb = _vertex_neighbours(s.edges, 4)
+    _harmonic_fill(X.copy(), hot, off, nb, 2)
+    _grow(hot, off, nb)
+    P = np.ascontiguousarray(np.tile(X[None], (1, 1, 1)))
+    _separation_kernel(P, True)
+    _separation_kernel(P, False)
+    _READY = True

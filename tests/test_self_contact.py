@@ -1,0 +1,173 @@
+"""Self-contact stage: constructed cases that pass through themselves come out clean by ipctk, the tool too.
+
+The oracle is ipctk: ``has_intersections`` on the object alone (``self_intersects``) and on object + tool with object
+self-contact filtered out (``tool_intersects``), ``is_step_collision_free`` on the object-tool step
+(``tool_step_free``). Surface validity (flipped, collapsed, torn triangles) is checked against the rest shape.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from colgnn_core.collision.correction import CollisionCorrector
+from colgnn_core.collision.exact import self_intersects, tool_intersects, tool_step_free
+from colgnn_core.collision.self_contact import SELF_CLEARANCE, SelfContact
+from colgnn_core.collision.surface_validity import MAX_STRETCH, SurfaceValidity
+from colgnn_core.errors import InputError
+from colgnn_core.geometry.tools import make_tool
+
+SIZE, CELLS = 0.04, 8  # m, grid cells per side of a patch
+
+
+def patch(z: float, offset: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A flat square grid patch at height z (m): vertices [(CELLS+1)^2,3], faces [2 CELLS^2,3] (normal +z)."""
+    g = np.linspace(-SIZE / 2, SIZE / 2, CELLS + 1)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    V = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)], axis=1)
+    idx = np.arange(V.shape[0]).reshape(CELLS + 1, CELLS + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + offset
+    return V, F
+
+
+def two_patches(gap: float = 0.006) -> tuple[np.ndarray, np.ndarray]:
+    Va, Fa = patch(0.0)
+    Vb, Fb = patch(gap, offset=len(Va))
+    return np.vstack([Va, Vb]), np.vstack([Fa, Fb])
+
+
+@pytest.fixture(scope="module")
+def tool():
+    return make_tool("sphere", {"radius": 0.008}, "ci")
+
+
+def corrected(rest, faces, x1, tool, pose0, pose1):
+    """Tool pass then the self stage for the step rest -> x1, as the Predictor runs them."""
+    corr = CollisionCorrector(faces, len(rest), tool, dhat=5e-4)
+    stage = SelfContact(faces, len(rest), rest)
+    T0, T1 = tool.world_vertices(pose0), tool.world_vertices(pose1)
+    c = corr.correct(rest, x1, pose0, pose1, T0, T1)
+    return stage, stage.correct(corr, rest, c.positions, pose0, pose1, T0, T1), T0, T1
+
+
+def assert_clean(stage, faces, x0, out, tool, T0, T1):
+    x1 = out.positions
+    assert not self_intersects(x1, faces)
+    assert not tool_intersects(x1, faces, T1, tool.faces)
+    assert tool_step_free(x0, x1, faces, T0, T1, tool.faces)
+    assert stage.check(x0, x1).pairs == 0
+    assert stage.validity.counts(x1).invalid == out.invalid_after == 0
+    assert out.pairs_after == 0
+
+
+def bulge(rest: np.ndarray, height: float = 0.012) -> np.ndarray:
+    """The lower of two patches pushed up in its middle (a bump of ``height`` m at the centre, 0 at the rim): it
+    passes 6 mm through the upper one."""
+    x1 = rest.copy()
+    n = len(rest) // 2
+    r = np.linalg.norm(rest[:n, :2], axis=1) / (SIZE / 2)
+    x1[:n, 2] += height * np.clip(1.0 - r, 0.0, 1.0)
+    return x1
+
+
+def pose(x, y, z):
+    return np.array([x, y, z, 0.0, 0.0, 0.0, 1.0])
+
+
+def test_two_patches_pushed_through_each_other_come_out_clean(tool):
+    rest, F = two_patches()
+    x1 = bulge(rest)
+    n = len(rest) // 2
+    assert self_intersects(x1, F)
+    stage, out, T0, T1 = corrected(rest, F, x1, tool, pose(0, 0, 0.02), pose(0, 0, 0.0165))
+    assert out.pairs_before > 0
+    assert_clean(stage, F, rest, out, tool, T0, T1)
+    # The tool pressed into the upper patch: it is still clear of it.
+    assert np.all(tool.sdf(out.positions[n:], pose(0, 0, 0.0165)) > 0)
+
+
+def test_a_fold_comes_out_unfolded_and_unflipped(tool):
+    rest, F = patch(0.0)
+    x1 = rest.copy()
+    right = rest[:, 0] > 0.005
+    # Fold the right part over the left about the line x = 0.005, 1 mm above it: it lands on the left part upside
+    # down (flipped) and, tilted, passes through it.
+    x1[right, 0] = 0.01 - rest[right, 0]
+    x1[right, 2] = 0.001 - 0.2 * (rest[right, 0] - 0.005)
+    assert stage_counts(rest, F, x1).flipped > 0
+    stage, out, T0, T1 = corrected(rest, F, x1, tool, pose(0, 0, 0.05), pose(0, 0, 0.049))
+    assert out.invalid_before > 0
+    assert_clean(stage, F, rest, out, tool, T0, T1)
+
+
+def test_a_collapsed_triangle_is_repaired(tool):
+    rest, F = patch(0.0)
+    x1 = rest + np.array([0.0, 0.0, 0.001])  # a small lift everywhere ...
+    f = F[len(F) // 2]
+    x1[f[2]] = 0.5 * (x1[f[0]] + x1[f[1]])  # ... and one triangle flattened onto its edge
+    counts = stage_counts(rest, F, x1)
+    assert counts.collapsed >= 1
+    stage, out, T0, T1 = corrected(rest, F, x1, tool, pose(0, 0, 0.05), pose(0, 0, 0.05))
+    assert out.invalid_before >= 1
+    assert_clean(stage, F, rest, out, tool, T0, T1)
+    # Local: vertices far from the collapsed triangle keep the lift.
+    far = np.linalg.norm(rest - rest[f[2]], axis=1) > 0.02
+    np.testing.assert_allclose(out.positions[far], x1[far])
+
+
+def stage_counts(rest, F, x):
+    return SurfaceValidity(F, rest).counts(x)
+
+
+def test_validity_bounds_flag_stretch_and_ignore_rigid_motion():
+    rest, F = patch(0.0)
+    v = SurfaceValidity(F, rest)
+    # A rigid turn by 150 degrees about x and a shift: the rest frame of the object, nothing invalid.
+    c, s = np.cos(np.radians(150)), np.sin(np.radians(150))
+    R = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    assert v.counts(rest @ R.T + [0.1, 0, 0]).invalid == 0
+    x = rest.copy()
+    x[0, 0] -= (MAX_STRETCH + 0.5) * SIZE / CELLS  # one corner pulled out beyond the bound
+    got = v.counts(x)
+    assert got.torn >= 1 and got.invalid >= 1
+
+
+def test_untouched_step_is_left_alone(tool):
+    rest, F = two_patches()
+    x1 = rest + np.array([0.0, 0.0, 1e-4])  # everything moves together: nothing to do
+    stage, out, _, _ = corrected(rest, F, x1, tool, pose(0, 0, 0.05), pose(0, 0, 0.05))
+    assert out.pairs_before == out.invalid_before == out.moved == 0 and not out.fallback
+    np.testing.assert_array_equal(out.positions, x1)
+
+
+def test_fallback_is_clean_for_self_and_tool(tool):
+    rest, F = two_patches()
+    x1 = bulge(rest)
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair: straight to the fallback
+    p0, p1 = pose(0, 0, 0.0165), pose(0.002, 0, 0.015)  # the tool presses on the upper patch and drags
+    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
+    c = corr.correct(rest, x1, p0, p1, T0, T1)
+    out = stage.correct(corr, rest, c.positions, p0, p1, T0, T1)
+    assert out.fallback and out.region > 0
+    assert_clean(stage, F, rest, out, tool, T0, T1)
+    # Outside the region the surface stays where it was.
+    still = np.linalg.norm(out.positions - rest, axis=1) == 0
+    assert still.sum() >= len(rest) - out.region
+
+
+def test_rest_touching_itself_is_refused():
+    rest, F = two_patches(gap=1e-7)
+    with pytest.raises(InputError, match="touches itself"):
+        SelfContact(F, len(rest), rest)
+
+
+def test_self_clearance_threshold_is_kept_over_the_step(tool):
+    rest, F = two_patches(gap=0.002)
+    x1 = rest.copy()
+    n = len(rest) // 2
+    x1[:n, 2] += 0.0019  # the lower patch stops 0.1 mm under the upper one: closer than the start allows
+    stage, out, T0, T1 = corrected(rest, F, x1, tool, pose(0, 0, 0.05), pose(0, 0, 0.05))
+    upper, lower = out.positions[n:, 2].min(), out.positions[:n, 2].max()
+    assert upper - lower > SELF_CLEARANCE
