@@ -134,7 +134,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     results = []
     for name in scenes:
         result = bench(name, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
-                       correction=not args.no_correction, progress=not args.json, compile=args.compile)
+                       correction=not args.no_correction, progress=not args.json, compile=args.compile,
+                       self_contact=args.self_contact)
         print(json.dumps(result, indent=2) if args.json else format_bench(result), flush=True)
         results.append(result)
     if args.markdown:
@@ -296,6 +297,8 @@ def _add_bench(sub) -> None:
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
     p.add_argument("--compile", action="store_true", help="torch.compile the network first (faster steps)")
+    p.add_argument("--self-contact", action="store_true",
+                   help="also run the self-contact stage (off by default; its time is self_contact_ms)")
     p.add_argument("--collision", action="store_true",
                    help="instead: collision detection (broad + filter + narrow) vs ipctk's CCD on one contact step")
     p.add_argument("--resolution", default="full", help="with --collision: scene resolution (full or ci)")

@@ -93,6 +93,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "while the tool is out of the network's reach, move the object this fraction "
               "of the way back to its rest shape per step (the objects are elastic; a learned model drifts instead); "
               "0 disables", range=(0.0, 0.99)),
+    ParamSpec("self_contact", False, "also keep the object from passing through itself and its surface valid (no "
+              "flipped or torn faces; docs/COLLISION_GUARANTEE.md). Off by default: not yet real-time (tens of ms "
+              "a step)"),
     ParamSpec("compile", True, "torch.compile the network at start-up (~1.8x faster GNN step; a few seconds with "
               "torch's disk cache, which make setup warms, 10-30 s without); falls back to eager with a warning"),
     ParamSpec("foxglove_port", 0, "live view: serve the mesh, the tool and the collision counts to the Foxglove app "
@@ -174,7 +177,7 @@ class PredictorNode(Node):
         self.checkpoint_name = path
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
                                          threads=p["threads"] or auto_threads(), compile=p["compile"],
-                                         limits=p["limits"],
+                                         limits=p["limits"], self_contact=p["self_contact"],
                                          rest_relaxation=p["rest_relaxation"])
         if pred.scene.name != p["scene"]:
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "

@@ -48,7 +48,7 @@ def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
 
 
 def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
-          correction: bool = True, progress: bool = False, compile: bool = False) -> dict:
+          correction: bool = True, progress: bool = False, compile: bool = False, self_contact: bool = False) -> dict:
     """Benchmark one scene. Returns the JSON fields of the ``colgnn bench`` contract.
 
     Args:
@@ -57,13 +57,14 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         frames: trajectory length including the rest frame (≥ 3).
         threads: torch threads of the Predictor (the solver uses numpy/scipy's own).
         compile: torch.compile the network first (see :class:`~colgnn_core.runtime.predictor.Predictor`).
+        self_contact: also run the self-contact stage (its time is ``self_contact_ms``; 0 when off).
     """
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
     if frames < 3:
         raise InputError(f"frames must be >= 3, got {frames}")
     predictor = Predictor.from_checkpoint(checkpoint or scene_name, correction=correction, threads=threads,
-                                          compile=compile)
+                                          compile=compile, self_contact=self_contact)
     scene = predictor.scene
     if scene.name != scene_name:
         raise InputError(f"checkpoint is for scene {scene.name!r}, not {scene_name!r}")
@@ -82,6 +83,7 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "resolution": scene.resolution,
         "checkpoint": str(checkpoint or f"shipped:{scene_name}"),
         "correction": correction,
+        "self_contact": bool(predictor.self_contact is not None),
         "frames": frames,
         "total_ms": total,
         "graph_ms": stats(stages["graph"]),

@@ -240,14 +240,16 @@ class Predictor:
             rate: x* - rest = network acceleration / a). 0 (default): off. GNN models only; applied before
             the correction, so the guarantee is unchanged.
         self_contact: run the self-contact stage after the tool pass (with ``correction``): the published object
-            never passes through itself and its surface stays valid (docs/COLLISION_GUARANTEE.md).
+            never passes through itself and its surface stays valid (docs/COLLISION_GUARANTEE.md). Off by default:
+            it costs far more than its 3 ms budget today (tens of ms a step, seconds on a torn drag; see
+            docs/STATUS.md), so the real-time node runs it only when asked (``self_contact:=true``).
     """
 
     def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
                  threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
                  max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0,
-                 self_contact: bool = True):
+                 self_contact: bool = False):
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
         if not 0.0 <= rest_relaxation < 1.0:
