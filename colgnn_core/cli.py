@@ -79,6 +79,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         split=args.split,
         progress=not args.quiet,
         retry_failed=args.retry_failed,
+        dask=args.dask,
     )
     done = manifest.get("sequences", {})
     print(f"{len(done)} sequence(s) in {args.out} (manifest.json)")
@@ -226,7 +227,9 @@ def _add_generate(sub) -> None:
     p.add_argument("--test-sequences", type=int, default=None,
                    help="held-out test sequences (default: sequences/4, at least 1)")
     p.add_argument("--frames", type=_positive, default=40, help="frames per sequence, rest frame included (default 40)")
-    p.add_argument("--jobs", type=_positive, default=1)
+    p.add_argument("--jobs", type=_positive, default=1, help="local solver processes")
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="simulate on a Dask cluster: its scheduler (tcp://HOST:8786), or local:N worker processes here")
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N", help="simulate only shard I of N")
     p.add_argument("--resolution", choices=("ci", "full"), default="full")
     p.add_argument("--poses", default=None, help="simulate this poses CSV instead of the scene's family")
