@@ -47,8 +47,8 @@ from colgnn_core.geometry.tetrahedralize import tetrahedralize_for
 from colgnn_core.geometry.tools import TOOL_SHAPES, make_tool
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.io import atomic_write, ensure_writable_dir
-from colgnn_core.scenes.scene import (BUILTIN_SCENES, RESOLUTIONS, build_scene, place_on, surface_height,
-                                      tool_contact_height)
+from colgnn_core.scenes.scene import (BUILTIN_SCENES, RESOLUTIONS, Scene, build_scene, place_on, read_config_file,
+                                      surface_height, tool_contact_height)
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
@@ -308,6 +308,7 @@ class NewScene:
     config: dict
     surface: dict
     meshes: dict[str, dict]
+    scene: Scene  # the new scene at ci, read back from the written files
 
 
 def create_scene(name: str, object_path: str | Path, size: float, tool: str | ToolSpec = "sphere",
@@ -350,8 +351,9 @@ def create_scene(name: str, object_path: str | Path, size: float, tool: str | To
     surf_info = {"source": surface.source, "up": surface.up, "scale": surface.scale, "repairs": surface.repairs,
                  "vertices": int(len(surface.vertices)), "faces": int(len(surface.faces)),
                  "extents": surface.extents.tolist()}
+    scene = build_scene(name, "ci", read_config_file(toml_path), base_dir=out)
     return NewScene(name, toml_path, [out / f for f in (*files, f"{name}-surface.obj", f"{name}.toml")], cfg,
-                    surf_info, info)
+                    surf_info, info, scene)
 
 
 def _check(name: str, cfg: dict, meshes: dict[str, TetMesh]) -> None:
@@ -398,8 +400,9 @@ def format_summary(new: NewScene) -> str:
               f"  tool      {t['shape']}: {params}; clearance at rest {1e3 * t['rest_clearance']:.1f} mm",
               f"  material  {m['preset']}: E {m['youngs_modulus']:.3g} Pa, nu {m['poisson_ratio']:g}, "
               f"rho {m['density']:g} kg/m^3",
-              f"  support   {support}; dhat {1e3 * c['dhat']:.3f} mm; r_W ci {1e3 * c['model']['ci']['world_radius']:.2f}"
-              f" mm, full {1e3 * c['model']['full']['world_radius']:.2f} mm",
+              f"  support   {support}; dhat {1e3 * c['dhat']:.3f} mm; r_W ci "
+              f"{1e3 * c['model']['ci']['world_radius']:.2f} mm, full "
+              f"{1e3 * c['model']['full']['world_radius']:.2f} mm",
               "  workspace [" + ", ".join(f"{v:.3f}" for v in w["min"]) + "] .. ["
               + ", ".join(f"{v:.3f}" for v in w["max"]) + "] m",
               f"  family    presses, drags, plunges over the surface; depth {1e3 * f['depth'][0]:.1f}-"
