@@ -48,7 +48,7 @@ def test_node_serves_a_users_scene_over_dds(node, ros):
         for pose in seq.tool_poses[1:9]:
             for _ in range(20):  # best effort: repeat the first pose until the node's reader has matched ours
                 pub.publish(array_to_pose_stamped(pose, "world", node.get_clock().now().nanoseconds))
-                if spin_until(executor, lambda: len(meshes) > sent, timeout=1.0):
+                if spin_until(executor, lambda n=sent: len(meshes) > n, timeout=1.0):
                     break
             sent = len(meshes)
             assert sent > 0, "no mesh came back"
