@@ -52,6 +52,7 @@ def test_node_serves_a_users_scene_over_dds(node, ros):
                     break
             sent = len(meshes)
             assert sent > 0, "no mesh came back"
+        assert spin_until(executor, lambda: len(tools) >= len(meshes) >= 8, timeout=10.0), (len(meshes), len(tools))
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=15.0)
     finally:
