@@ -24,7 +24,6 @@ kept, training resumes from its last checkpoint (same plan), a finished stage is
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from colgnn_core.learn.checkpoint import strip_training_state
 from colgnn_core.learn.data import read_manifest
 from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.train import TrainConfig, train
+from colgnn_core.runtime.predictor import auto_threads
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import RESOLUTIONS, is_custom, load_scene, scene_file
 from colgnn_core.sim.cluster import check_address
@@ -203,7 +203,7 @@ def fit(name: str, resolution: str = "ci", minutes: float = 30.0, jobs: int = 1,
         metrics = evaluate(name, checkpoint=str(ckpt), data_dir=data, out_dir=work / "eval",
                            max_sequences=plan.test_sequences, progress=False)
         prog.set("evaluate", "speed")
-        speed = bench(name, checkpoint=str(ckpt), frames=BENCH_FRAMES, threads=min(2, os.cpu_count() or 1))
+        speed = bench(name, checkpoint=str(ckpt), frames=BENCH_FRAMES, threads=auto_threads())
         prog.set("evaluate", "picture")
         picture = _picture(ckpt, scene, data, folder / f"{name}-fit.png")
         model = folder / f"{name}.pt"
@@ -284,7 +284,7 @@ def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, 
         probe = work / "calibration.pt"
         cfg = TrainConfig(steps=CALIBRATION_STEPS, warmup_steps=3, log_every=5, checkpoint_every=10_000)
         t0 = time.perf_counter()
-        res = train(scene, data, probe, config=cfg, progress=False, log_dir=False)
+        res = train(scene, data, probe, config=cfg, progress=False, log_dir=False, threads=auto_threads())
         setup = time.perf_counter() - t0 - res.wall_s
         probe.unlink(missing_ok=True)
         rate = res.step / max(res.wall_s, 1e-6)
@@ -303,7 +303,7 @@ def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, 
                       checkpoint_every=max(25, steps // 20), log_every=max(1, min(25, steps // 40)))
     prog.set("train", f"step {done}/{steps}")
     res = train(scene, data, ckpt, resume=done > 0, steps=steps, config=cfg, time_budget_s=left, progress=False,
-                log_dir=False, on_step=lambda s, n: prog.note(f"step {s}/{n}"))
+                log_dir=False, threads=auto_threads(), on_step=lambda s, n: prog.note(f"step {s}/{n}"))
     if res.stopped == "time budget":
         _say(prog, f"training stopped by the time budget at step {res.step}/{steps}", quiet)
     return int(res.step)
