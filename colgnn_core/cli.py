@@ -18,8 +18,9 @@ from colgnn_core.collision.ccd_queries import format_ccd_report, run_ccd_check
 from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.evaluation.accuracy import evaluate, format_markdown
 from colgnn_core.evaluation.collision_speed import bench_collision, format_bench_collision
+from colgnn_core.evaluation.fit import fit
 from colgnn_core.evaluation.frontier import format_frontier, frontier
-from colgnn_core.evaluation.render import render_file, render_strip
+from colgnn_core.evaluation.render import render_file, render_scene, render_strip
 from colgnn_core.evaluation.report import results
 from colgnn_core.evaluation.speed import bench, format_bench
 from colgnn_core.evaluation.speed_page import write_speed_page
@@ -27,7 +28,8 @@ from colgnn_core.evaluation.stability import format_stability, stability
 from colgnn_core.io import ensure_writable_dir, read_poses_csv, save_sequence
 from colgnn_core.learn.train import TrainConfig, train
 from colgnn_core.runtime.rollout import rollout
-from colgnn_core.scenes import load_scene, scene_names
+from colgnn_core.scenes import SCENE_PATH_ENV, load_scene, scene_dirs, scene_names
+from colgnn_core.scenes.custom import MATERIALS, create_scene, format_summary
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 from colgnn_core.sim.dataset import generate_dataset, parse_shard, simulate_sequence
 
@@ -79,6 +81,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         split=args.split,
         progress=not args.quiet,
         retry_failed=args.retry_failed,
+        dask=args.dask,
     )
     done = manifest.get("sequences", {})
     print(f"{len(done)} sequence(s) in {args.out} (manifest.json)")
@@ -183,6 +186,32 @@ def _model_size(text: str) -> tuple[int, int, int]:
     return values
 
 
+def cmd_scene(args: argparse.Namespace) -> int:
+    """``colgnn scene new``: a scene from a mesh file, its summary and a picture."""
+    out = Path(args.out) if args.out else (scene_dirs()[0] if scene_dirs() else Path("scenes"))
+    new = create_scene(args.name, args.object, args.size, tool=args.tool, material=args.material, ground=args.ground,
+                       out_dir=out, up=args.up, force=args.force)
+    print(format_summary(new))
+    picture = render_scene(new.scene, new.toml.with_name(f"{new.name}-scene.png"))
+    print(f"wrote {', '.join(str(f) for f in new.files)} and {picture}")
+    if new.toml.parent.resolve() not in [d.resolve() for d in scene_dirs()]:
+        print(f"to use it: export {SCENE_PATH_ENV}={new.toml.parent.resolve()}")
+    return 0
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    result = fit(args.name, resolution=args.resolution, minutes=args.minutes, jobs=args.jobs, dask=args.dask,
+                 progress=not args.quiet, invocation=args.invocation)
+    print(f"{result.name} ({result.resolution}) in {result.wall_s / 60:.1f} min: wrote {result.model}, "
+          f"{result.report} and {result.picture}")
+    rel = result.metrics["relative"]
+    print("held-out relative displacement error (all vertices): model + correction "
+          f"{rel['corrected']['all']['mean']:.3f}, rest {rel['rest']['all']['mean']:.3f}, rest + correction "
+          f"{rel['rest_correction']['all']['mean']:.3f}; intersecting frames "
+          f"{result.metrics['rows']['corrected']['collisions']['intersecting_frames']}")
+    return 0
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     out = render_file(args.file, args.out, count=args.count, stride=args.stride)
     print(f"wrote {out}")
@@ -229,7 +258,9 @@ def _add_generate(sub) -> None:
     p.add_argument("--test-sequences", type=int, default=None,
                    help="held-out test sequences (default: sequences/4, at least 1)")
     p.add_argument("--frames", type=_positive, default=40, help="frames per sequence, rest frame included (default 40)")
-    p.add_argument("--jobs", type=_positive, default=1)
+    p.add_argument("--jobs", type=_positive, default=1, help="local solver processes")
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="simulate on a Dask cluster: its scheduler (tcp://HOST:8786), or local:N worker processes here")
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N", help="simulate only shard I of N")
     p.add_argument("--resolution", choices=("ci", "full"), default="full")
     p.add_argument("--poses", default=None, help="simulate this poses CSV instead of the scene's family")
@@ -351,6 +382,37 @@ def _add_evaluate(sub) -> None:
                    help="with --all: steps of the random motion with tilts (0: leave it out)")
 
 
+def _add_scene(sub) -> None:
+    p = sub.add_parser("scene", help="make your own scene: `colgnn scene new NAME --object MESH --size M --tool T`")
+    verbs = p.add_subparsers(dest="scene_command", required=True, metavar="VERB")
+    n = verbs.add_parser("new", help="a scene from a mesh file and a tool shape (written as NAME.toml + assets)")
+    n.add_argument("name", help="scene name (letters, digits, '_' or '-')")
+    n.add_argument("--object", required=True, metavar="MESH", help="closed surface: .obj, .stl, .ply or .msh")
+    n.add_argument("--size", required=True, type=float, metavar="METRES", help="longest side of the object (m)")
+    n.add_argument("--tool", required=True, metavar="SHAPE[:key=value,...]",
+                   help="sphere, cylinder, cone or blade, sizes optional (m), e.g. sphere:radius=0.02")
+    n.add_argument("--material", default="rubber", metavar="PRESET|E,nu,rho",
+                   help=f"{', '.join(MATERIALS)} (default rubber), or Young's modulus (Pa), Poisson ratio, density")
+    n.add_argument("--ground", action="store_true",
+                   help="rest the object on a ground plane (default: glue its bottom band in place)")
+    n.add_argument("--up", choices=("x", "y", "z", "-x", "-y", "-z"), default=None,
+                   help="the file's up axis (default: z for .stl, y for .obj/.ply/.msh)")
+    n.add_argument("--out", default=None, metavar="DIR",
+                   help=f"scene folder (default: the first folder of {SCENE_PATH_ENV}, else ./scenes)")
+    n.add_argument("--force", action="store_true", help="replace an existing scene of that name")
+
+
+def _add_fit(sub) -> None:
+    p = sub.add_parser("fit", help="generate -> train -> evaluate your scene within a time budget (resumable)")
+    p.add_argument("name", help=f"a scene made by `colgnn scene new` (found through {SCENE_PATH_ENV})")
+    p.add_argument("--resolution", choices=("ci", "full"), default="ci")
+    p.add_argument("--minutes", type=float, default=30.0, help="time budget (default 30)")
+    p.add_argument("--jobs", type=_positive, default=1, help="local solver processes")
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="simulate on a Dask cluster: its scheduler (tcp://HOST:8786), or local:N worker processes here")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+
+
 def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a sequence or rollout file")
     p.add_argument("file")
@@ -377,11 +439,13 @@ def _add_demo(sub) -> None:
 # (verb, parser set-up, handler), in the order of `colgnn --help`
 VERBS = (
     ("scenes", _add_scenes, cmd_scenes),
+    ("scene", _add_scene, cmd_scene),
     ("generate", _add_generate, cmd_generate),
     ("train", _add_train, cmd_train),
     ("rollout", _add_rollout, cmd_rollout),
     ("bench", _add_bench, cmd_bench),
     ("evaluate", _add_evaluate, cmd_evaluate),
+    ("fit", _add_fit, cmd_fit),
     ("render", _add_render, cmd_render),
     ("ccd-check", _add_ccd_check, cmd_ccd_check),
     ("demo", _add_demo, cmd_demo),

@@ -16,6 +16,7 @@ import trimesh
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.io import Sequence, atomic_write, load_sequence
+from colgnn_core.scenes import sample_poses
 
 _TOOL_COLOR = (0.55, 0.58, 0.62, 0.35)
 _PENETRATION_COLOR = np.array([0.85, 0.05, 0.05, 1.0])
@@ -222,3 +223,23 @@ def render_file(path: str | Path, out: str | Path, count: int = 5, stride: int =
     if suffix == ".gif":
         return render_gif(seq, out, stride=stride)
     return render_strip([seq], [""], out, count=count)
+
+
+def render_scene(scene, out: str | Path, seed: int = 2, frames: int = 60, count: int = 4) -> Path:
+    """A picture of a scene before any simulation: the object at rest and the tool at its rest pose, then along
+    one trajectory of the scene's family at poses where it has not yet reached the object (nothing is simulated,
+    so deeper poses would show the undeformed object pierced). Colours: distance to the tool."""
+    poses = sample_poses(scene, seed, frames)
+    rest = np.asarray(scene.object.vertices)
+    surface = rest[np.unique(scene.object.faces)]
+    clear = [t for t, p in enumerate(poses) if scene.tool.sdf(surface, p).min() > 0]
+    distance = [float(scene.tool.sdf(surface, poses[t]).min()) for t in clear]
+    # the rest pose, the closest approach and evenly spread frames in between
+    pick = sorted({clear[0], clear[int(np.argmin(distance))], *clear[:: max(1, len(clear) // max(1, count - 1))]})
+    pick = [pick[i] for i in np.unique(np.linspace(0, len(pick) - 1, count).round().astype(int))]
+    seq = Sequence(object_positions=np.repeat(rest[None], len(pick), axis=0),
+                   object_faces=np.asarray(scene.object.faces), tool_positions=np.stack(
+                       [scene.tool.world_vertices(poses[t]) for t in pick]), tool_faces=np.asarray(scene.tool.faces),
+                   tool_poses=poses[pick], dt=scene.dt)
+    return render_strip([seq], [f"{scene.name} ({scene.resolution})"], out, frames=list(range(len(pick))),
+                        count=len(pick))

@@ -1,7 +1,7 @@
-"""Offline tetrahedralization of closed surfaces with fTetWild (PyPI ``pytetwild``).
+"""Tetrahedralization of closed surfaces with fTetWild (PyPI ``pytetwild``).
 
-Used once to build the committed ``.npz`` assets (the bunnies); neither the
-tests nor the scenes import it, so CI does not need pytetwild. Regenerate::
+``colgnn scene new`` tetrahedralizes a user's surface at both resolutions with :func:`tetrahedralize_for`. It also
+built the committed ``.npz`` assets (the bunnies) offline. Regenerate those with::
 
     .venv/bin/pip install pytetwild==0.4.2
     # ci bunny (300 surface vertices)
@@ -80,6 +80,51 @@ def tetrahedralize_surface(
     mesh = TetMesh.from_tets(np.asarray(v, dtype=np.float64)[used], t.reshape(-1, 4), orient=True)
     mesh.validate()
     return mesh
+
+
+# Per resolution: the surface vertex count aimed at (as the built-in scenes: ~300 for ci, ~3000 for full) and the
+# envelopes (fractions of the bbox diagonal) tried in turn. fTetWild sometimes returns a surface that is not a
+# 2-manifold where a thin part (a leg, an ear) is only a few target edge lengths thick; the next envelope is tried.
+# The interior is coarsened (fewer tets, quality kept), as for the full bunny: the solver's cost follows the tets.
+RESOLUTION_TARGETS = {
+    "ci": (300, (8e-3, 5e-3, 4e-3, 3e-3, 2e-3)),
+    "full": (3000, (1e-3, 7e-4, 1.5e-3, 5e-4)),
+}
+COARSEN = True
+MIN_TET_QUALITY = 0.05  # worst normalised radius ratio accepted (the shipped meshes: >= 0.17)
+
+
+def target_edge_length(area: float, surface_vertices: int) -> float:
+    """Edge length (m) of an equilateral triangulation of ``area`` m^2 with about ``surface_vertices`` vertices."""
+    return float(np.sqrt(2.0 * area / (np.sqrt(3.0) * max(int(surface_vertices), 4))))
+
+
+def tetrahedralize_for(vertices: np.ndarray, faces: np.ndarray, area: float, resolution: str,
+                       num_threads: int = 1) -> tuple[TetMesh, dict]:
+    """Tet mesh of a closed surface for a scene resolution ('ci' | 'full'), and how it was made.
+
+    The target edge length follows from the surface area and the resolution's surface vertex count; the fTetWild
+    envelopes of ``RESOLUTION_TARGETS`` are tried in turn until the mesh is valid (closed 2-manifold boundary,
+    positive tets) and its worst tet quality is at least ``MIN_TET_QUALITY``. ValueError listing every attempt
+    when none is.
+    """
+    target, epsilons = RESOLUTION_TARGETS[resolution]
+    v = np.asarray(vertices, dtype=np.float64)
+    diag = float(np.linalg.norm(v.max(0) - v.min(0)))
+    fac = target_edge_length(area, target) / diag
+    tries = []
+    for eps in epsilons:
+        try:
+            mesh = tetrahedralize_surface(v, faces, fac, eps, num_threads=num_threads, coarsen=COARSEN)
+        except (ValueError, RuntimeError) as exc:
+            tries.append(f"envelope {eps:g}: {exc}")
+            continue
+        q = mesh.quality()
+        if q["min_quality"] < MIN_TET_QUALITY:
+            tries.append(f"envelope {eps:g}: worst tet quality {q['min_quality']:.3f} < {MIN_TET_QUALITY}")
+            continue
+        return mesh, {"edge_length_fac": fac, "epsilon": eps, "coarsen": COARSEN, "attempts": len(tries) + 1, **q}
+    raise ValueError(f"fTetWild gave no valid {resolution} tet mesh: " + "; ".join(tries))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -467,8 +467,8 @@ def _save(run: _Run, step: int, t0: float) -> None:
 def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, variant: str = "full",
           resume: bool = False, steps: int | None = None, seed: int = 0, threads: int | None = None, *,
           config: TrainConfig | None = None, resolution: str | None = None, time_budget_s: float | None = None,
-          stop_after: int | None = None, progress: bool = True, log_dir: str | os.PathLike | None | bool = None
-          ) -> TrainResult:
+          stop_after: int | None = None, progress: bool = True, log_dir: str | os.PathLike | None | bool = None,
+          on_step=None) -> TrainResult:
     """Train a model on a dataset folder and write the checkpoint ``out_ckpt``.
 
     Args:
@@ -486,6 +486,8 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
         stop_after: stop (with a checkpoint) after this many steps in this invocation (training in chunks).
         progress: tqdm progress bar with the loss terms (rank 0).
         log_dir: TensorBoard folder (default ``<out_ckpt stem>.tb`` beside the checkpoint; False: none).
+        on_step: called as ``on_step(step, total_steps)`` after every logged step (rank 0), e.g. by a pipeline's
+            own progress display.
 
     Raises:
         InputError: unknown variant, bad data, a checkpoint of another scene/variant, unwritable output.
@@ -521,6 +523,8 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
             elif stop:
                 stopped = "time budget"
             log.record(step, scalars, losses, float(run.model.opt.param_groups[0]["lr"]), log_now, t0)
+            if on_step is not None and log_now and run.dist.main:
+                on_step(step, run.cfg.steps)
             if step % run.cfg.checkpoint_every == 0 and step < run.cfg.steps and not stop:
                 _save(run, step, t0)
             if stop:

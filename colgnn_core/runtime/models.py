@@ -17,7 +17,7 @@ import torch
 from colgnn_core.errors import InputError
 from colgnn_core.learn.checkpoint import LoadedCheckpoint
 from colgnn_core.learn.registry import load_checkpoint
-from colgnn_core.scenes import scene_names
+from colgnn_core.scenes import is_custom, scene_file, scene_names
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "assets" / "models"
 DATA_STEP_FACTOR = 2.0       # limits='data': per-step cap = 2 x the largest per-frame displacement in training
@@ -25,9 +25,16 @@ DATA_DEVIATION_FACTOR = 1.5  # ... and distance-from-rest cap = 1.5 x the larges
 
 
 def shipped_checkpoint(scene_name: str) -> Path:
-    """Path of the shipped model for a scene (InputError if there is none)."""
+    """Path of a scene's default model (InputError if there is none): ``assets/models/<scene>.pt`` for a built-in
+    scene, ``<scene>.pt`` beside a user's scene TOML (written by ``colgnn fit``)."""
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
+    if is_custom(scene_name):
+        path = scene_file(scene_name).with_suffix(".pt")
+        if not path.is_file():
+            raise InputError(f"scene {scene_name!r} has no model yet ({path}); run `colgnn fit {scene_name}` or pass "
+                             "a checkpoint")
+        return path
     path = MODEL_DIR / f"{scene_name}.pt"
     if not path.is_file():
         raise InputError(f"no shipped model for scene {scene_name!r} ({path}); pass a checkpoint")

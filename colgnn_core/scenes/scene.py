@@ -1,12 +1,15 @@
 """Scene definition: object tet mesh + rigid tool + material + trajectory family.
 
-Each scene is one TOML file next to this module (``<name>.toml``), read with
-``tomllib``. :func:`build_scene` turns a config and a resolution into a
-:class:`Scene` with the object in world coordinates (z up, metres).
+Each scene is one TOML file (``<name>.toml``), read with ``tomllib``: the built-in scenes next to this module,
+a user's scenes (``colgnn scene new``) in the folders of ``COLGNN_SCENE_PATH`` (a path list, like ``PATH``).
+:func:`build_scene` turns a config and a resolution into a :class:`Scene` with the object in world coordinates
+(z up, metres). Mesh files named in a scene's TOML are looked up beside that TOML first, then in the package's
+``assets/meshes``.
 """
 
 from __future__ import annotations
 
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +26,8 @@ from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply, quat
 RESOLUTIONS = ("full", "ci")
 SCENE_DIR = Path(__file__).resolve().parent
 MESH_DIR = SCENE_DIR.parent / "assets" / "meshes"
+BUILTIN_SCENES = ("cone_bunny", "knife_torus", "sphere_mat", "cylinder_banana")  # the paper's order
+SCENE_PATH_ENV = "COLGNN_SCENE_PATH"
 
 
 @dataclass
@@ -132,11 +137,46 @@ class Scene:
 # --------------------------------------------------------------------------------------
 # Building
 # --------------------------------------------------------------------------------------
+def scene_dirs() -> list[Path]:
+    """The user's scene folders: the entries of ``COLGNN_SCENE_PATH`` (``os.pathsep``-separated), in order."""
+    return [Path(p).expanduser() for p in os.environ.get(SCENE_PATH_ENV, "").split(os.pathsep) if p.strip()]
+
+
+def custom_scene_files() -> dict[str, Path]:
+    """name -> TOML file of every user scene on ``COLGNN_SCENE_PATH`` (the first folder that has a name wins; a
+    built-in scene's name is not shadowed)."""
+    out: dict[str, Path] = {}
+    for folder in scene_dirs():
+        if not folder.is_dir():
+            continue
+        for path in sorted(folder.glob("*.toml")):
+            if path.stem not in out and path.stem not in BUILTIN_SCENES:
+                out[path.stem] = path
+    return out
+
+
+def scene_file(name: str) -> Path | None:
+    """The TOML file of scene ``name`` (built-in or on ``COLGNN_SCENE_PATH``); None if there is none."""
+    if name in BUILTIN_SCENES:
+        return SCENE_DIR / f"{name}.toml"
+    return custom_scene_files().get(name)
+
+
 def read_config(name: str) -> dict:
-    """Parse ``<name>.toml`` from the scenes package folder."""
-    path = SCENE_DIR / f"{name}.toml"
-    with open(path, "rb") as f:
-        return tomllib.load(f)
+    """Parse scene ``name``'s TOML (see :func:`scene_file`); InputError naming the file if it is malformed."""
+    path = scene_file(name)
+    if path is None:
+        raise InputError(f"unknown scene {name!r}")
+    return read_config_file(path)
+
+
+def read_config_file(path: Path) -> dict:
+    """Parse a scene TOML; InputError naming the file and the problem if it is malformed."""
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: not valid TOML ({exc})") from None
 
 
 def _euler_xyz(deg: list[float]) -> np.ndarray:
@@ -148,13 +188,22 @@ def _euler_xyz(deg: list[float]) -> np.ndarray:
     return quat_to_matrix(q)
 
 
-def build_object(spec: dict) -> TetMesh:
+def _mesh_file(name: str, base_dir: Path | None) -> Path:
+    """A scene's mesh file: beside its TOML (``base_dir``) if there, else in the package's assets."""
+    if base_dir is not None and (base_dir / name).is_file():
+        return base_dir / name
+    if (MESH_DIR / name).is_file():
+        return MESH_DIR / name
+    raise InputError(f"mesh file {name!r} not found in {base_dir or MESH_DIR}")
+
+
+def build_object(spec: dict, base_dir: Path | None = None) -> TetMesh:
     """Object tet mesh in its own frame from an ``[object]`` table merged with its resolution table."""
     gen = spec["generator"]
     if gen == "msh":
-        mesh = load_msh(MESH_DIR / spec["file"])
+        mesh = load_msh(_mesh_file(spec["file"], base_dir))
     elif gen == "npz":
-        mesh = load_npz(MESH_DIR / spec["file"])
+        mesh = load_npz(_mesh_file(spec["file"], base_dir))
     elif gen == "torus":
         mesh = torus_mesh(spec["major_radius"], spec["minor_radius"], int(spec["around"]), int(spec["segments"]),
                           float(spec.get("growth", 1.25)))
@@ -283,11 +332,18 @@ def _vertex_contact_height(tool: Tool, near: np.ndarray, xy: np.ndarray, rot: np
     return above
 
 
-def build_scene(name: str, resolution: str, cfg: dict) -> Scene:
-    """Build a :class:`Scene` from a parsed config at ``resolution``."""
-    obj_cfg = {k: v for k, v in cfg["object"].items() if k not in RESOLUTIONS}
-    obj_cfg.update(cfg["object"][resolution])
-    mesh = build_object(obj_cfg)
+def at_resolution(table: dict, resolution: str) -> dict:
+    """A TOML table with its ``[table.<resolution>]`` sub-table merged in (the other resolutions dropped)."""
+    out = {k: v for k, v in table.items() if k not in RESOLUTIONS}
+    out.update(table.get(resolution, {}))
+    return out
+
+
+def build_scene(name: str, resolution: str, cfg: dict, base_dir: Path | None = None) -> Scene:
+    """Build a :class:`Scene` from a parsed config at ``resolution``; mesh files are looked up in ``base_dir``
+    (the TOML's folder) first."""
+    obj_cfg = at_resolution(cfg["object"], resolution)
+    mesh = build_object(obj_cfg, base_dir)
     lo, hi = mesh.bbox()
     diag = float(np.linalg.norm(hi - lo))
     dhat = float(cfg.get("dhat", cfg.get("dhat_rel", 1e-3) * diag))
@@ -341,7 +397,7 @@ def build_scene(name: str, resolution: str, cfg: dict) -> Scene:
         dhat=dhat,
         friction=float(cfg.get("friction", 0.0)),
         family=fam,
-        model=dict(cfg.get("model", {})),
+        model=at_resolution(cfg.get("model", {}), resolution),
         pinned=pinned,
         target=target,
         config=cfg,

@@ -27,7 +27,9 @@ Resume: a sequence whose file exists, loads, matches the requested scene (and it
 fingerprint) / seed / frames / solver options and (if the manifest lists it) has the
 listed sha256, is skipped. Sharding
 splits the ordered job list as ``jobs[i::n]`` so several machines can share a dataset;
-the manifest is merged (re-read, updated, atomically replaced) after every sequence.
+the manifest is merged (re-read, updated, atomically replaced) after every sequence. On a cluster, ``dask``
+(``colgnn generate --dask tcp://host:8786``) sends one task per sequence to a Dask scheduler
+(:mod:`colgnn_core.sim.cluster`) and writes the returned sequences here, so resuming works the same way.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ import numpy as np
 from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.io import SUBFRAME_KEYS, Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
 from colgnn_core.scenes import load_scene, sample_poses, split_seeds
+from colgnn_core.sim.cluster import check_address, dask_client
 from colgnn_core.sim.ipc import IPCSimulator
 
 MANIFEST = "manifest.json"
@@ -189,11 +192,12 @@ def _matches(job: _Job, seq: Sequence, fingerprint: str) -> bool:
         return False
 
 
-def _run_job(job: _Job) -> dict:
-    """Worker: simulate one sequence and write it atomically. Returns its manifest entry or an error."""
+def simulate_job(job: _Job, scene) -> dict:
+    """Simulate one job's sequence on ``scene`` (a worker's part: no file is written). Returns ``{"sequence",
+    "seed", "rejected", "wall_s", "load"}`` or, when every seed failed or the poses are bad, ``{"error",
+    "rejected", "failure"}`` (``failure``: the job's reproducible failure key, family jobs only)."""
     rejected: list[dict] = []
     try:
-        scene = load_scene(job.scene, job.resolution)
         t0 = time.perf_counter()
         for seed in (job.seed, *job.fallback_seeds):
             poses = job.poses if job.poses is not None else sample_poses(scene, seed, job.frames)
@@ -207,31 +211,51 @@ def _run_job(job: _Job) -> dict:
                 rejected.append({"seed": int(seed), "error": str(exc)})
                 if seed == (job.fallback_seeds[-1] if job.fallback_seeds else job.seed):
                     raise
-        seq.extra.update(
-            {
-                "seed": np.int64(seed),
-                "scene": np.asarray(job.scene),
-                "resolution": np.asarray(job.resolution),
-                "split": np.asarray(job.split),
-                "object_fingerprint": np.asarray(scene.object.fingerprint()),
-                "sim_options": np.asarray(_options_key(job)),
-            }
-        )
-        path = Path(job.file)
-        save_sequence(path, seq)
-        entry = _entry(job, path, seq)
-        entry["file"] = path.name
-        entry["seed"] = None if seed < 0 else int(seed)
-        entry["rejected_seeds"] = rejected
-        entry["wall_s"] = time.perf_counter() - t0
-        entry["load_average_1min"] = os.getloadavg()[0]  # a shared machine inflates ms_per_step_median
-        return entry
+        return {"sequence": seq, "seed": int(seed), "rejected": rejected, "wall_s": time.perf_counter() - t0,
+                "load": os.getloadavg()[0]}
     except (SimulationError, InputError) as exc:
-        entry = {"file": Path(job.file).name, "split": job.split, "seed": job.seed,
-                 "error": f"{type(exc).__name__}: {exc}", "rejected_seeds": rejected}
-        if isinstance(exc, SimulationError) and job.poses is None:
-            entry["job"] = _failure_key(job)  # deterministic: remembered so that a resume does not redo it
+        failure = _failure_key(job) if isinstance(exc, SimulationError) and job.poses is None else None
+        return {"error": f"{type(exc).__name__}: {exc}", "rejected": rejected, "failure": failure}
+
+
+def save_job(job: _Job, result: dict, fingerprint: str) -> dict:
+    """Write a simulated job's sequence atomically (this process); its manifest entry, or the error entry."""
+    if "error" in result:
+        entry = {"file": Path(job.file).name, "split": job.split, "seed": job.seed, "error": result["error"],
+                 "rejected_seeds": result["rejected"]}
+        if result["failure"] is not None:
+            entry["job"] = result["failure"]  # deterministic: remembered so that a resume does not redo it
         return entry
+    seq, seed = result["sequence"], result["seed"]
+    seq.extra.update(
+        {
+            "seed": np.int64(seed),
+            "scene": np.asarray(job.scene),
+            "resolution": np.asarray(job.resolution),
+            "split": np.asarray(job.split),
+            "object_fingerprint": np.asarray(fingerprint),
+            "sim_options": np.asarray(_options_key(job)),
+        }
+    )
+    path = Path(job.file)
+    save_sequence(path, seq)
+    entry = _entry(job, path, seq)
+    entry["file"] = path.name
+    entry["seed"] = None if seed < 0 else int(seed)
+    entry["rejected_seeds"] = result["rejected"]
+    entry["wall_s"] = result["wall_s"]
+    entry["load_average_1min"] = result["load"]  # a shared machine inflates ms_per_step_median
+    return entry
+
+
+def _run_job(job: _Job) -> dict:
+    """Local worker: simulate one sequence and write it atomically. Returns its manifest entry or an error."""
+    try:
+        scene = load_scene(job.scene, job.resolution)
+    except InputError as exc:
+        return {"file": Path(job.file).name, "split": job.split, "seed": job.seed,
+                "error": f"InputError: {exc}", "rejected_seeds": []}
+    return save_job(job, simulate_job(job, scene), scene.object.fingerprint())
 
 
 def _read_manifest(out_dir: Path) -> dict:
@@ -312,6 +336,8 @@ def generate_dataset(
     sim_options: dict | None = None,
     max_retries: int = 2,
     retry_failed: bool = False,
+    dask: str | None = None,
+    on_entry=None,
 ) -> dict:
     """Simulate a dataset of a scene into ``out_dir``; returns the manifest (dict).
 
@@ -332,6 +358,9 @@ def generate_dataset(
         retry_failed: simulate again jobs whose every seed failed in an earlier run (the manifest's ``failed``
             section); by default they are skipped and reported as failures again, since the solver is
             deterministic.
+        dask: simulate on a Dask cluster instead of local processes: a scheduler address (``tcp://host:8786``)
+            or ``local:N`` (:mod:`colgnn_core.sim.cluster`); one task per sequence, written here.
+        on_entry: called with each finished sequence's manifest entry (or error entry), e.g. for a progress display.
 
     Raises InputError for bad arguments (unknown scene, poses outside the workspace, unwritable
     folder) and SimulationError, after finishing the other sequences, if any sequence failed.
@@ -341,6 +370,10 @@ def generate_dataset(
         raise InputError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
     if int(jobs) < 1:
         raise InputError(f"jobs must be >= 1, got {jobs}")
+    if dask is not None:
+        check_address(dask)
+        if int(jobs) > 1:
+            raise InputError("give either --jobs (local processes) or --dask (a cluster), not both")
     i_shard, n_shard = (int(v) for v in shard)
     if not (n_shard >= 1 and 0 <= i_shard < n_shard):
         raise InputError(f"shard must satisfy 0 <= i < n, got {i_shard}/{n_shard}")
@@ -387,8 +420,13 @@ def generate_dataset(
             if "ms_per_step_median" in entry:
                 bar.set_postfix(ms_step=f"{entry['ms_per_step_median']:.0f}",
                                 newton=f"{entry['newton_iterations_mean']:.1f}")
+        if on_entry is not None:
+            on_entry(entry)
 
-    _run_jobs(todo, int(jobs), record)
+    if dask is not None and todo:
+        _run_on_dask(todo, scene, header["object_fingerprint"], dask, record)
+    else:
+        _run_jobs(todo, int(jobs), record)
     if bar is not None:
         bar.close()
     manifest = _read_manifest(out)
@@ -447,6 +485,22 @@ def _triage(my_jobs: list[_Job], manifest: dict, fingerprint: str, retry_failed:
         else:
             todo.append(job)
     return done, todo, failures
+
+
+def _run_on_dask(todo: list[_Job], scene, fingerprint: str, address: str, record) -> None:
+    """Simulate ``todo`` on a Dask cluster (one task per sequence; the scene is sent once); write and ``record``
+    each sequence here as it arrives."""
+    from distributed import as_completed  # lazy: only runs that ask for Dask import it
+
+    with dask_client(address) as client:
+        scene_on_workers = client.scatter(scene, broadcast=True)
+        futures = {client.submit(simulate_job, job, scene_on_workers, pure=False, key=f"colgnn-{Path(job.file).stem}-"
+                                 f"{os.getpid()}-{time.time_ns()}"): job for job in todo}
+        try:
+            for fut in as_completed(futures):
+                record(save_job(futures[fut], fut.result(), fingerprint))
+        finally:
+            client.cancel(list(futures))
 
 
 def _run_jobs(todo: list[_Job], jobs: int, record) -> None:

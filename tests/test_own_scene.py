@@ -1,0 +1,156 @@
+"""Bring your own object: `colgnn scene new` + `colgnn fit` end to end on a small shipped mesh, mesh repair and
+refusal, the derived scene, and the scene path (COLGNN_SCENE_PATH) seen by every command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+import pytest
+
+from colgnn_core.errors import InputError
+from colgnn_core.geometry.mesh_import import import_surface
+from colgnn_core.geometry.tetmesh import check_closed_surface
+from colgnn_core.scenes.custom import parse_material, parse_tool
+from tests.helpers import own_scene as own
+
+CUBE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+CUBE_F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
+                   [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+
+
+def write_obj(path, v, f) -> str:
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(f"f {a + 1} {b + 1} {c + 1}\n"
+                                                                           for a, b, c in f))
+    return str(path)
+
+
+# ----------------------------------------------------------------------------- import and repair
+
+def test_repairs_duplicates_winding_and_holes(tmp_path):
+    """A cube with split vertices (an OBJ seam), one face flipped, one face missing and all faces inward: repaired
+    into a closed outward surface, scaled to the size, z up from the file's y."""
+    v = np.concatenate([CUBE_V, CUBE_V[[0, 1]]])    # vertices 8, 9 duplicate 0, 1
+    f = CUBE_F[:, ::-1].copy()                          # all inward
+    f[0] = np.where(f[0] == 0, 8, np.where(f[0] == 1, 9, f[0]))
+    f[3] = f[3, ::-1]                                   # one face against its neighbours
+    f = np.delete(f, 5, axis=0)                         # a hole
+    s = import_surface(write_obj(tmp_path / "box.obj", v * 3.0, f), size=0.05)
+    text = "; ".join(s.repairs)
+    assert "merged 2 duplicate vertices" in text and "closed 1 hole(s)" in text
+    assert "winding" in text or "outward" in text
+    check_closed_surface(s.vertices, s.faces)
+    np.testing.assert_allclose(s.extents, [0.05, 0.05, 0.05], atol=1e-12)
+    assert s.up == "y"
+
+
+@pytest.mark.parametrize("kind, message", [
+    ("non_manifold", r"non-manifold surface: 1 edges are shared by more than two triangles"),
+    ("flat", r"degenerate mesh: it encloses no volume"),
+    ("two_pieces", r"2 separate pieces of similar size"),
+    ("empty", r"not a triangle surface"),
+])
+def test_bad_meshes_are_refused_naming_the_problem(tmp_path, kind, message):
+    if kind == "non_manifold":  # a third triangle on one of the cube's edges (a fin)
+        v, f = np.concatenate([CUBE_V, [[0.5, -1.0, 0.5]]]), np.concatenate([CUBE_F, [[0, 1, 8]]])
+    elif kind == "flat":  # a closed tetrahedron surface squashed flat: no volume
+        v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.25, 0.25, 0]])
+        f = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]])
+    elif kind == "two_pieces":
+        v, f = np.concatenate([CUBE_V, CUBE_V + 3.0]), np.concatenate([CUBE_F, CUBE_F + 8])
+    else:
+        v, f = CUBE_V[:3], np.array([[0, 1, 2]])
+    with pytest.raises(InputError, match=message):
+        import_surface(write_obj(tmp_path / f"{kind}.obj", v, f), size=0.1)
+
+
+def test_bad_mesh_on_the_command_line_exits_2_and_writes_nothing(tmp_path):
+    bad = write_obj(tmp_path / "fin.obj", np.concatenate([CUBE_V, [[0.5, -1.0, 0.5]]]),
+                    np.concatenate([CUBE_F, [[0, 1, 8]]]))
+    out = tmp_path / "scenes"
+    res = subprocess.run([sys.executable, "-m", "colgnn_core", "scene", "new", "fin", "--object", bad, "--size", "0.1",
+                          "--tool", "sphere", "--out", str(out)], capture_output=True, text=True, env=own.env(),
+                         cwd=own.REPO, timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert "non-manifold surface: 1 edges are shared by more than two triangles" in res.stderr
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
+    assert not list(out.glob("*")) if out.exists() else True
+
+
+def test_tool_and_material_arguments():
+    assert parse_tool("sphere").overrides == {}
+    assert parse_tool("cone:radius=0.01,tip_radius=0").overrides == {"radius": 0.01, "tip_radius": 0.0}
+    with pytest.raises(InputError, match="unknown shape 'hammer'"):
+        parse_tool("hammer")
+    with pytest.raises(InputError, match="key in radius"):
+        parse_tool("sphere:length=0.1")
+    with pytest.raises(InputError, match="must be positive"):
+        parse_tool("blade:length=-1")
+    assert parse_material("gel")[0] == "gel"
+    assert parse_material("2e5,0.3,900") == ("custom", (2e5, 0.3, 900.0))
+    with pytest.raises(InputError, match="0 <= nu < 0.5"):
+        parse_material("1e5,0.5,1000")
+
+
+# ----------------------------------------------------------------------------- end to end
+
+def test_scene_new_writes_a_derived_scene_that_every_command_finds():
+    res, wall = own.created()
+    assert res.returncode == 0, res.stderr
+    d = own.scene_dir()
+    for f in ("pebble.toml", "pebble-ci.npz", "pebble-full.npz", "pebble-surface.obj", "pebble-scene.png"):
+        assert (d / f).is_file(), f
+    assert "repairs  none needed" in res.stdout and "tool      sphere: radius 15.0 mm" in res.stdout
+    cfg = tomllib.loads((d / "pebble.toml").read_text())
+    assert cfg["tool"]["radius"] == pytest.approx(0.015, rel=1e-3)          # 0.15 x the longest side
+    assert cfg["object"]["pin_height"] > 0 and "ground" not in cfg          # no --ground: the bottom is glued
+    assert cfg["family"]["region"] == "surface"
+    assert 0 < cfg["dhat"] <= 1e-3 * np.linalg.norm([0.1, 0.0667, 0.05]) + 1e-9
+    listed = own.colgnn("scenes", "--json", "--resolution", "ci")
+    assert listed.returncode == 0, listed.stderr
+    rows = {r["name"]: r for r in json.loads(listed.stdout)}
+    assert {"cone_bunny", "sphere_mat", "pebble"} <= set(rows)
+    p = rows["pebble"]
+    assert p["tool_shape"] == "sphere" and 150 <= p["object_vertices"] and p["pinned_vertices"] >= 3
+    size = np.subtract(p["object_bbox_max"], p["object_bbox_min"])
+    assert size.max() == pytest.approx(0.1, rel=0.03)
+    assert np.all(np.array(p["tool_rest_pose"][:3]) >= p["workspace_min"])
+    again = own.colgnn("scene", "new", "pebble", "--object", str(own.PEBBLE), "--size", "0.1", "--tool", "sphere",
+                       "--out", str(d))
+    assert again.returncode == 2 and "exists; pass --force" in again.stderr
+
+
+@pytest.mark.timeout(900)
+def test_fit_trains_evaluates_and_reports_within_its_budget():
+    res, wall = own.fitted()
+    assert res.returncode == 0, res.stderr[-3000:]
+    d = own.scene_dir()
+    for f in ("pebble.pt", "pebble-report.md", "pebble-fit.png"):
+        assert (d / f).is_file(), f
+    report = (d / "pebble-report.md").read_text()
+    assert "| rest (nothing moves) | 1.000 ± 0.000 |" in report
+    assert "| rest + correction (no network) |" in report and "IPC solver" in report
+    plan = json.loads((d / "pebble-fit" / "ci" / "plan.json").read_text())
+    assert plan["train_sequences"] >= 1 and plan["train_steps"] >= 30
+    assert sum(plan["shares_s"].values()) <= 60 * own.FIT_MINUTES
+    # The budget is a plan, measured on a shared machine: allow the evaluation's overrun, not a runaway.
+    assert wall < 60 * own.FIT_MINUTES * 3
+    metrics = json.loads((d / "pebble-fit" / "ci" / "eval" / "metrics.json").read_text())
+    assert metrics["relative"]["rest"]["all"]["mean"] == pytest.approx(1.0)
+    assert metrics["rows"]["corrected"]["collisions"]["intersecting_frames"] == 0
+    # The default model of the scene now answers `rollout --scene pebble` (no checkpoint given).
+    poses = d / "poses.csv"
+    from colgnn_core.io import load_sequence
+    test_seq = load_sequence(sorted((d / "pebble-fit" / "ci" / "data").glob("test_*.npz"))[0])
+    rows = [f"{0.04 * i},{','.join(str(x) for x in p)}" for i, p in enumerate(test_seq.tool_poses[:6])]
+    poses.write_text("t,px,py,pz,qx,qy,qz,qw\n" + "\n".join(rows) + "\n")
+    out = own.colgnn("rollout", "--scene", "pebble", "--poses", str(poses), "--out", str(d / "r.npz"), "--quiet")
+    assert out.returncode == 0, out.stderr
+    assert load_sequence(d / "r.npz").object_positions.shape[:2] == test_seq.object_positions[:6].shape[:2]
+    # A second run finds everything done: nothing is simulated or trained again.
+    again = own.colgnn("fit", "pebble", "--minutes", str(own.FIT_MINUTES), "--quiet")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads((d / "pebble-fit" / "ci" / "plan.json").read_text()) == plan
