@@ -51,11 +51,12 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
 def write_speed_page(results: list[dict], page: Path, command: str) -> Path:
     """Write ``page`` and ``page.parent/bench/<scene>.json`` atomically; returns the page."""
     page = Path(page)
+    text = speed_markdown(results, command)  # before the JSON files change: the page's code version is the run's
     json_dir = page.parent / "bench"
     json_dir.mkdir(parents=True, exist_ok=True)
     for r in results:
         with atomic_write(json_dir / f"{r['scene']}.json", "w") as fh:
             fh.write(json.dumps(r, indent=2) + "\n")
     with atomic_write(page, "w") as fh:
-        fh.write(speed_markdown(results, command))
+        fh.write(text)
     return page
