@@ -168,7 +168,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     result = evaluate(args.scene, checkpoint=args.checkpoint, data_dir=args.data, out_dir=args.out,
                       correction_modes=("raw",) if args.no_correction else ("raw", "corrected"),
-                      exact=not args.no_exact, max_sequences=args.max_sequences, progress=not args.quiet)
+                      exact=not args.no_exact, max_sequences=args.max_sequences, progress=not args.quiet,
+                      command=args.invocation)
     print(format_markdown(result))
     print("wrote " + ", ".join(result["files"].values()))
     return 0

@@ -101,9 +101,15 @@ def test_train_model_options_reach_the_checkpoint(tmp_path, capsys):
     out = tmp_path / "qs.pt"
     assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(out), "--steps", "3",
                  "--variant", "baseline", "--model", "8/1/1", "--quiet", "--threads", "1",
-                 "--model-options", '{"order": 0, "quasi_static": true}']) == 0
+                 "--model-options", '{"order": 0, "quasi_static": true, "coarse_nodes": 8, "coarse_steps": 1}']) == 0
     cfg = load_checkpoint(out).simulator.config
     assert (cfg.order, cfg.quasi_static, cfg.latent, cfg.message_passing_steps) == (0, True, 8, 1)
+    assert (cfg.coarse_nodes, cfg.coarse_steps) == (8, 1)
+    # the node's default (compiled) runs such a model: the warm-up keeps the coarse level's edges
+    from colgnn_core.runtime.predictor import Predictor
+
+    p = Predictor.from_checkpoint(str(out), threads=1, compile=True)
+    assert p.compiled and p.step(p.scene.tool_rest_pose).positions.shape == p.scene.object.vertices.shape
     capsys.readouterr()
     with pytest.raises(SystemExit):
         main(["train", "--scene", fx.SCENE, "--data", str(tmp_path), "--out", str(out), "--model-options", "[1]"])

@@ -26,6 +26,7 @@ import numpy as np
 
 from colgnn_core.collision.metrics import sequence_metrics
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.provenance import provenance_line
 from colgnn_core.evaluation.measure import (collision_aggregate, contact_region, mean_std,
                                             relative_displacement_error, rmse_fraction, stats, test_files)
 from colgnn_core.evaluation.render import save_png
@@ -66,7 +67,7 @@ def _rmse_summary(curves: list[np.ndarray]) -> dict:
 
 def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evaluate",
              correction_modes=MODES, exact: bool = True, max_sequences: int | None = None,
-             progress: bool = True) -> dict:
+             progress: bool = True, command: str | None = None) -> dict:
     """Evaluate a model on the test sequences of ``data_dir`` and write the reports into ``out_dir``.
 
     Args:
@@ -163,6 +164,8 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         "per_sequence": per_sequence,
         "wall_s": time.perf_counter() - t_start,
     }
+    if command is not None:  # the report names the command that measured it, the machine and its load
+        result["provenance"] = provenance_line(command)
     return write_report(result, out, "metrics", "rmse_over_time.png", format_markdown, plot_rmse)
 
 
@@ -206,6 +209,7 @@ def _fmt_rmse(s: dict | None) -> str:
 def format_markdown(result: dict) -> str:
     """The Markdown report of :func:`evaluate` (RMSE in % of the bbox diagonal, depths in mm)."""
     lines = [f"# colgnn evaluate: {result['scene']} ({result['resolution']})", "",
+             *([result["provenance"], ""] if result.get("provenance") else []),
              f"Checkpoint `{result['checkpoint']}` (variant {result['variant']}), "
              f"{len(result['sequences'])} test sequence(s) from `{result['data_dir']}` "
              f"({min(result['frames'])}–{max(result['frames'])} frames), bbox diagonal "

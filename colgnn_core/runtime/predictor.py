@@ -50,7 +50,7 @@ from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses
 from colgnn_core.learn.core_model import EdgeSet
-from colgnn_core.learn.graph import GraphInputs, lift_to_mesh
+from colgnn_core.learn.graph import lift_to_mesh
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.stepper import RawStepper
@@ -308,7 +308,8 @@ class Predictor:
             send = torch.tensor([n] * pairs + [0] * pairs, dtype=torch.int64)
             recv = torch.tensor([0] * pairs + [n] * pairs, dtype=torch.int64)
             feats = torch.zeros((2 * pairs, g.world.features.shape[1]), dtype=g.world.features.dtype)
-            self.model.network(GraphInputs(g.node_features, g.mesh, EdgeSet(feats, send, recv), n))
+            # replace(): keep every other part of the graph (a coarse level's edges, for one)
+            self.model.network(replace(g, world=EdgeSet(feats, send, recv)))
 
     @classmethod
     def from_checkpoint(cls, checkpoint_or_scene, *, scene=None, correction: bool = True,
