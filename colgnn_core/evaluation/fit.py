@@ -44,7 +44,7 @@ from colgnn_core.learn.train import TrainConfig, train
 from colgnn_core.runtime.predictor import auto_threads
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import RESOLUTIONS, is_custom, load_scene, scene_file
-from colgnn_core.sim.cluster import check_address
+from colgnn_core.sim.cluster import check_workers
 from colgnn_core.sim.dataset import generate_dataset
 
 SHARES = {"data": 0.50, "train": 0.35, "evaluate": 0.15}
@@ -175,12 +175,7 @@ def fit(name: str, resolution: str = "ci", minutes: float = 30.0, jobs: int = 1,
     """Generate -> train -> evaluate scene ``name`` within ``minutes`` (see the module docstring)."""
     if resolution not in RESOLUTIONS:
         raise InputError(f"unknown resolution {resolution!r}; valid: {', '.join(RESOLUTIONS)}")
-    if int(jobs) < 1:
-        raise InputError(f"--jobs must be >= 1, got {jobs}")
-    if dask is not None:
-        check_address(dask)
-        if int(jobs) > 1:
-            raise InputError("give either --jobs (local processes) or --dask (a cluster), not both")
+    check_workers(jobs, dask)
     scene = load_scene(name, resolution)  # InputError for an unknown scene
     if not is_custom(name):
         raise InputError(f"{name!r} is a built-in scene (its model ships with colgnn); `colgnn fit` trains a scene "

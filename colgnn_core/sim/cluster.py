@@ -23,6 +23,16 @@ ADDRESS_RE = re.compile(r"^(tcp|tls|ucx|inproc)://\S+$|^[\w.\-]+:\d+$")
 CONNECT_TIMEOUT_S = 20
 
 
+def check_workers(jobs: int, dask: str | None) -> None:
+    """InputError unless ``jobs`` >= 1 and at most one of local processes (jobs > 1) and a Dask cluster is asked."""
+    if int(jobs) < 1:
+        raise InputError(f"jobs must be >= 1, got {jobs}")
+    if dask is not None:
+        check_address(dask)
+        if int(jobs) > 1:
+            raise InputError("give either --jobs (local processes) or --dask (a cluster), not both")
+
+
 def check_address(address: str) -> str:
     """``local:N`` (N >= 1) or a scheduler address (``tcp://host:port``, ``host:port``); InputError otherwise."""
     text = str(address).strip()

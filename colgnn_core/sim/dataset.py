@@ -48,7 +48,7 @@ import numpy as np
 from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.io import SUBFRAME_KEYS, Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
 from colgnn_core.scenes import load_scene, sample_poses, split_seeds
-from colgnn_core.sim.cluster import check_address, dask_client
+from colgnn_core.sim.cluster import check_workers, dask_client
 from colgnn_core.sim.ipc import IPCSimulator
 
 MANIFEST = "manifest.json"
@@ -368,12 +368,7 @@ def generate_dataset(
     scene = load_scene(scene_name, resolution)
     if split not in SPLITS:
         raise InputError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
-    if int(jobs) < 1:
-        raise InputError(f"jobs must be >= 1, got {jobs}")
-    if dask is not None:
-        check_address(dask)
-        if int(jobs) > 1:
-            raise InputError("give either --jobs (local processes) or --dask (a cluster), not both")
+    check_workers(jobs, dask)
     i_shard, n_shard = (int(v) for v in shard)
     if not (n_shard >= 1 and 0 <= i_shard < n_shard):
         raise InputError(f"shard must satisfy 0 <= i < n, got {i_shard}/{n_shard}")
