@@ -9,6 +9,7 @@ import argparse
 import json
 import shlex
 import sys
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -20,13 +21,16 @@ from colgnn_core.evaluation.accuracy import evaluate, format_markdown
 from colgnn_core.evaluation.collision_speed import bench_collision, format_bench_collision
 from colgnn_core.evaluation.fit import fit
 from colgnn_core.evaluation.frontier import format_frontier, frontier
+from colgnn_core.evaluation.model_card import model_cards, models_markdown, write_models_section
 from colgnn_core.evaluation.render import render_file, render_scene, render_strip
 from colgnn_core.evaluation.report import results
 from colgnn_core.evaluation.speed import bench, format_bench
 from colgnn_core.evaluation.speed_page import write_speed_page
 from colgnn_core.evaluation.stability import format_stability, stability
+from colgnn_core.evaluation.stability_page import write_stability_page
 from colgnn_core.io import ensure_writable_dir, read_poses_csv, save_sequence
 from colgnn_core.learn.train import TrainConfig, train
+from colgnn_core.runtime.models import MODEL_DIR
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import SCENE_PATH_ENV, load_scene, scene_dirs, scene_names
 from colgnn_core.scenes.custom import MATERIALS, create_scene, format_summary
@@ -119,12 +123,16 @@ def cmd_rollout(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.stability:
+        if args.scene == "all":
+            raise InputError("--stability runs one scene at a time (each writes its own row of the page)")
         result = stability(args.checkpoint or args.scene, steps=args.steps, seed=args.seed, threads=args.threads,
                            compile=args.compile, limits=args.limits, rest_relaxation=args.rest_relaxation,
-                           progress=not args.json)
+                           self_contact=args.self_contact, progress=not args.json)
         if result["scene"] != args.scene:
             raise InputError(f"checkpoint is for scene {result['scene']!r}, not {args.scene!r}")
         print(json.dumps(result, indent=2) if args.json else format_stability(result))
+        if args.markdown:
+            print(f"wrote {write_stability_page(result, Path(args.markdown), args.invocation)}")
         return 0
     if args.collision:
         result = bench_collision(args.scene, args.resolution, repeats=args.repeats, sequence=args.sequence)
@@ -227,6 +235,18 @@ def cmd_ccd_check(args: argparse.Namespace) -> int:
     return 0 if report["false_negatives"] == 0 else 1
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    folder = Path(args.dir) if args.dir else MODEL_DIR
+    if not folder.is_dir():
+        raise InputError(f"no such models folder: {folder}")
+    if args.markdown:
+        print(f"wrote {write_models_section(folder, args.markdown, args.invocation)}")
+        return 0
+    cards = model_cards(folder)
+    print(json.dumps([asdict(c) for c in cards], indent=2) if args.json else models_markdown(cards, args.invocation))
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Ground-truth demo: simulate one short sequence of the default scene and render it."""
     out = ensure_writable_dir(args.out)
@@ -325,7 +345,9 @@ def _add_bench(sub) -> None:
     p.add_argument("--checkpoint", default=None, help="default: the shipped model of the scene")
     p.add_argument("--frames", type=_positive, default=40, help="trajectory length, rest frame included")
     p.add_argument("--markdown", default=None, metavar="FILE",
-                   help="also write the results as a page (docs/SPEED.md) and FILE's folder/bench/<scene>.json")
+                   help="also write the results as a page: the speed page (docs/SPEED.md) and FILE's "
+                        "folder/bench/<scene>.json; with --stability, FILE's folder/<scene>.json and the stability "
+                        "table in FILE (docs/stability/README.md)")
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
     p.add_argument("--compile", action="store_true", help="torch.compile the network first (faster steps)")
@@ -437,6 +459,14 @@ def _add_demo(sub) -> None:
     p.add_argument("--out", default="out/demo")
 
 
+def _add_models(sub) -> None:
+    p = sub.add_parser("models", help="the shipped checkpoints: scene, size, training data and steps (from the files)")
+    p.add_argument("--dir", default=None, help="checkpoint folder (default: the shipped models)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--markdown", default=None, metavar="FILE",
+                   help="write the table into FILE between its <!-- begin models --> / <!-- end models --> markers")
+
+
 # (verb, parser set-up, handler), in the order of `colgnn --help`
 VERBS = (
     ("scenes", _add_scenes, cmd_scenes),
@@ -449,6 +479,7 @@ VERBS = (
     ("fit", _add_fit, cmd_fit),
     ("render", _add_render, cmd_render),
     ("ccd-check", _add_ccd_check, cmd_ccd_check),
+    ("models", _add_models, cmd_models),
     ("demo", _add_demo, cmd_demo),
 )
 

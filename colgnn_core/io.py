@@ -77,6 +77,30 @@ def ensure_writable_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+def write_generated_section(path: str | os.PathLike, name: str, text: str) -> Path:
+    """Replace the block between ``<!-- begin NAME -->`` and ``<!-- end NAME -->`` in the markdown file ``path``
+    with ``text`` (atomically), so that a page can mix hand-written prose with a table its command writes.
+
+    A missing file is created with just the block; a file without the markers gets the block appended. Two begin
+    markers, or a begin without its end, raise :class:`InputError` (the file is left as it was).
+    """
+    path = Path(path)
+    begin, end = f"<!-- begin {name} -->", f"<!-- end {name} -->"
+    block = f"{begin}\n{text.strip()}\n{end}"
+    old = path.read_text() if path.exists() else ""
+    if old.count(begin) > 1 or old.count(begin) != old.count(end) or old.find(end) < old.find(begin):
+        raise InputError(f"{path}: the markers {begin!r} / {end!r} must each appear once, or not at all")
+    if begin in old:
+        head, rest = old.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        new = head + block + tail
+    else:
+        new = (old.rstrip() + "\n\n" if old.strip() else "") + block + "\n"
+    with atomic_write(path, "w") as fh:
+        fh.write(new)
+    return path
+
+
 @dataclass
 class Sequence:
     """One ground-truth sequence or rollout (see module docstring for units)."""

@@ -73,3 +73,30 @@ def test_bench_markdown_writes_the_speed_page_from_its_own_run(tmp_path, capsys)
     assert f"{r['speedup_vs_ipc']:.0f}×" in text and text.count(f"| `{fx.SCENE}` (") == 1
     assert main(["bench", "--scene", "all", "--frames", "4"]) == 2  # all scenes only into a page
     assert "--scene all needs --markdown" in capsys.readouterr().err
+
+
+def test_stability_markdown_writes_one_row_per_scene_and_keeps_the_prose(tmp_path, capsys):
+    """`colgnn bench --stability --markdown`: the scene's JSON (with its command and code version) beside the page,
+    and the page's generated block rebuilt from every JSON there; hand-written prose outside the block stays."""
+    page = tmp_path / "README.md"
+    page.write_text("# Stability\n\nProse that stays.\n\n<!-- begin stability -->\nold table\n<!-- end stability -->\n"
+                    "\nClosing prose.\n")
+    (tmp_path / "other.json").write_text(json.dumps({
+        "scene": "other", "resolution": "ci", "random_steps": 5, "leave_and_settle_steps": 2,
+        "tool_intersecting_frames": 0, "checked_frames": 3, "self_intersecting_frames": 1, "fallbacks": 0,
+        "rss_mb_start": 100.0, "rss_mb_end": 101.0, "rss_mb_per_1000_steps": 0.5, "rest_rmse_fraction": 0.001,
+        "rest_max_fraction": 0.002, "step_ms_median": 3.0, "threads": 1, "wall_s": 60.0}))
+    assert main(["bench", "--stability", "--scene", fx.SCENE, "--checkpoint", str(fx.trained_checkpoint("full")),
+                 "--steps", "12", "--threads", "1", "--json", "--markdown", str(page)]) == 0
+    out = capsys.readouterr().out
+    r = json.loads((tmp_path / f"{fx.SCENE}.json").read_text())
+    assert r["command"].startswith("colgnn bench --stability --scene cone_bunny") and r["code"] != "unknown"
+    assert r["steps_done"] == json.loads(out[: out.rindex("}") + 1])["steps_done"]
+    text = page.read_text()
+    assert text.startswith("# Stability\n\nProse that stays.\n") and text.rstrip().endswith("Closing prose.")
+    assert "old table" not in text and text.count("<!-- begin stability -->") == 1
+    assert f"| `{fx.SCENE}` (ci) | no | 12 + {r['leave_and_settle_steps']} |" in text
+    assert f"| {r['tool_intersecting_frames']} ({r['checked_frames']}) |" in text
+    assert "| `other` (ci) | no | 5 + 2 | 0 (3) | 1 | – |" in text and "not recorded" in text
+    assert main(["bench", "--stability", "--scene", "all", "--markdown", str(page)]) == 2
+    assert "one scene at a time" in capsys.readouterr().err

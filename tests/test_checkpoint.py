@@ -178,3 +178,34 @@ def test_resume_continues_bit_for_bit(tmp_path):
     steps(sim2, opt2, sched2, gen2, frame, 3)
     for (k, a), (_, b) in zip(sim.state_dict().items(), sim2.state_dict().items()):
         assert torch.equal(a, b), k
+
+
+def test_model_cards_of_the_shipped_models_and_the_readme_table_match_the_files(tmp_path, capsys):
+    """`colgnn models`: the values come from the checkpoint files, the rebuilt train command carries the non-default
+    model settings, and the models README's generated table is the one the files give today."""
+    from colgnn_core.cli import main
+    from colgnn_core.evaluation.model_card import SECTION, model_cards, models_markdown
+    from colgnn_core.runtime.models import MODEL_DIR
+
+    cards = {c.file: c for c in model_cards(MODEL_DIR)}
+    bunny = cards["cone_bunny.pt"]
+    assert (bunny.scene, bunny.resolution, bunny.variant, bunny.size, bunny.steps) == \
+        ("cone_bunny", "full", "full", "16/3/1", 8000)
+    assert bunny.sequences == 19 and bunny.options == {} and 300 < bunny.wall_s < 400
+    qs = cards["experiments/knife_torus_ci_quasi_static.pt"]
+    assert qs.resolution == "ci" and qs.size == "64/4/2" and qs.sequences == 100
+    assert qs.options == {"order": 0, "coarse_nodes": 32, "coarse_steps": 3, "quasi_static": True}
+    assert qs.command.endswith("--model 64/4/2 --model-options "
+                               "'{\"order\": 0, \"coarse_nodes\": 32, \"coarse_steps\": 3, \"quasi_static\": true}'")
+    assert cards["sphere_mat_subspace.pt"].size.startswith("PCA ") and "--model" not in \
+        cards["sphere_mat_subspace.pt"].command
+    readme = (MODEL_DIR / "README.md").read_text()
+    block = readme.split(f"<!-- begin {SECTION} -->\n", 1)[1].split(f"<!-- end {SECTION} -->", 1)[0]
+    fresh = models_markdown(list(cards.values()), "colgnn models")
+    assert block.split("\n", 1)[1] == fresh.split("\n", 1)[1], \
+        "the models README is stale: run `colgnn models --markdown colgnn_core/assets/models/README.md`"
+    page = tmp_path / "M.md"
+    assert main(["models", "--markdown", str(page)]) == 0 and "wrote" in capsys.readouterr().out
+    assert "| `knife_torus.pt` | knife_torus (full) | full | 16/2/1 |" in page.read_text()
+    assert main(["models", "--dir", str(tmp_path / "nope")]) == 2
+    assert "no such models folder" in capsys.readouterr().err

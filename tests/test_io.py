@@ -132,3 +132,23 @@ def test_atomic_write_gives_usual_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert (tmp_path / "p.txt").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_write_generated_section_replaces_only_its_block(tmp_path):
+    """The block between the markers is replaced; text around it is kept; a missing file or block is created;
+    broken markers are refused and leave the file as it was."""
+    from colgnn_core.io import write_generated_section
+
+    page = tmp_path / "p.md"
+    write_generated_section(page, "t", "| a |\n")
+    assert page.read_text() == "<!-- begin t -->\n| a |\n<!-- end t -->\n"
+    page.write_text("head\n<!-- begin t -->\nold\n<!-- end t -->\ntail\n")
+    write_generated_section(page, "t", "new")
+    assert page.read_text() == "head\n<!-- begin t -->\nnew\n<!-- end t -->\ntail\n"
+    write_generated_section(page, "u", "other")  # another block is appended, the first stays
+    assert page.read_text().endswith("tail\n\n<!-- begin u -->\nother\n<!-- end u -->\n") and "new" in page.read_text()
+    broken = "x\n<!-- end t -->\n<!-- begin t -->\n"
+    page.write_text(broken)
+    with pytest.raises(InputError, match="must each appear once"):
+        write_generated_section(page, "t", "new")
+    assert page.read_text() == broken

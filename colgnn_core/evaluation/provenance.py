@@ -34,12 +34,15 @@ def load_average() -> float | None:
 
 
 def code_version(repo: Path | None = None) -> str:
-    """The git commit of the code (``abc1234``, ``+dirty`` with uncommitted changes), or ``unknown``."""
+    """The git commit of the code (``abc1234``, ``+dirty`` with uncommitted changes outside ``docs/`` and the
+    markdown pages), or ``unknown``."""
     repo = Path(repo) if repo is not None else Path(__file__).resolve().parents[2]
     try:
         head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True, timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+        # Only code counts: the generated pages (docs/, any *.md) change while measuring, and are not code.
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no", "--",
+                                ".", ":(exclude)docs", ":(exclude,glob)**/*.md"],
                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"

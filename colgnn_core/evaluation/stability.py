@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from colgnn_core.collision.exact import self_intersects, tool_intersects, tool_step_free
+from colgnn_core.collision.surface_validity import SurfaceValidity
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import family_poses, stats
 from colgnn_core.geometry.transforms import interpolate_poses
@@ -136,23 +137,25 @@ def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
 
 def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, seed: int = 0,
               check_every: int = 10, memory_every: int = 250, threads: int = 2, compile: bool = False,
-              limits: str = "none", rest_relaxation: float = 0.0, progress: bool = True) -> dict:
+              limits: str = "none", rest_relaxation: float = 0.0, self_contact: bool = False,
+              progress: bool = True) -> dict:
     """Run the long rollout (see the module docstring) and return a JSON-ready report.
 
     ``limits``: output caps of the Predictor ('none' or 'data', see :meth:`Predictor.from_checkpoint`);
-    ``rest_relaxation``: see :class:`~colgnn_core.runtime.predictor.Predictor`."""
+    ``rest_relaxation``, ``self_contact``: see :class:`~colgnn_core.runtime.predictor.Predictor`."""
     if steps < 1 or settle < 1 or check_every < 1 or memory_every < 1:
         raise InputError("steps, settle, check_every and memory_every must be >= 1")
     pred = Predictor.from_checkpoint(checkpoint_or_scene, threads=threads, compile=compile, limits=limits,
-                                     rest_relaxation=rest_relaxation)
+                                     rest_relaxation=rest_relaxation, self_contact=self_contact)
     scene = pred.scene
     poses = scripted_poses(scene, "random", steps + 1, seed=seed)
     poses = np.concatenate([poses, _leave_and_settle(scene, poses[-1], pred.max_translation, settle)])
     faces, tool_faces = scene.object.faces, scene.tool.faces
     pred.reset(tool_pose=poses[0])
-    rest = scene.object.vertices
-    counts = {"tool_intersecting_frames": 0, "self_intersecting_frames": 0, "checked_frames": 0, "fallbacks": 0,
-             "crossings_before": 0, "steps_done": 0}
+    rest = pred.rest_mesh  # the settled rest the Predictor starts from and returns to (one rest state)
+    validity = SurfaceValidity(faces, rest)
+    counts = {"tool_intersecting_frames": 0, "self_intersecting_frames": 0, "invalid_surface_frames": 0,
+              "checked_frames": 0, "fallbacks": 0, "self_fallbacks": 0, "crossings_before": 0, "steps_done": 0}
     memory: list[tuple[int, float]] = [(0, rss_mb())]
     step_ms: list[float] = []
     frames = range(1, len(poses))
@@ -168,11 +171,13 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
         step_ms.append(r.timings_ms["total"])
         counts["steps_done"] = k
         counts["fallbacks"] += int(r.fallback)
+        counts["self_fallbacks"] += int(r.self_fallback)
         counts["crossings_before"] += r.vertex_face_before + r.edge_edge_before
         if k % check_every == 0 or r.fallback or k == len(poses) - 1:
             counts["checked_frames"] += 1
             counts["tool_intersecting_frames"] += tool_intersects(r.positions, faces, r.tool_vertices, tool_faces)
             counts["self_intersecting_frames"] += self_intersects(r.positions, faces)
+            counts["invalid_surface_frames"] += bool(validity.invalid(r.positions).any())
         if k % memory_every == 0:
             memory.append((k, rss_mb()))
     diagonal = scene.bbox_diagonal()
@@ -186,6 +191,7 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
         "scene": scene.name, "resolution": scene.resolution, "checkpoint": str(checkpoint_or_scene),
         "random_steps": steps, "leave_and_settle_steps": len(poses) - 1 - steps, "seed": seed,
         "threads": pred.threads, "compiled": pred.compiled, "limits": limits, "rest_relaxation": rest_relaxation,
+        "self_contact": self_contact,
         "relaxed_steps": pred.relaxed_steps, **counts,
         "step_ms_median": step["median"], "step_ms_p95": step["p95"],
         "rss_mb_start": float(mb[0]), "rss_mb_end": float(mb[-1]), "rss_mb_per_1000_steps": slope,
@@ -206,6 +212,7 @@ def format_stability(r: dict) -> str:
         f"  step ms median / p95           {r['step_ms_median']:.2f} / {r['step_ms_p95']:.2f}",
         f"  object-tool intersecting frames {r['tool_intersecting_frames']} of {r['checked_frames']} checked",
         f"  object self-intersecting frames {r['self_intersecting_frames']} of {r['checked_frames']} checked",
+        f"  frames with invalid faces       {r.get('invalid_surface_frames', '-')} of {r['checked_frames']} checked",
         f"  fallbacks / crossings before    {r['fallbacks']} / {r['crossings_before']}",
         f"  memory MB start / end / slope   {r['rss_mb_start']:.1f} / {r['rss_mb_end']:.1f} / "
         f"{r['rss_mb_per_1000_steps']:+.2f} per 1000 steps",
