@@ -36,6 +36,7 @@ from colgnn_core.scenes import SCENE_PATH_ENV, load_scene, scene_dirs, scene_nam
 from colgnn_core.scenes.custom import MATERIALS, create_scene, format_summary
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 from colgnn_core.sim.dataset import generate_dataset, parse_shard, simulate_sequence
+from colgnn_core.sim.settle import MAX_SAG_FRACTION, check_settle
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -199,7 +200,8 @@ def cmd_scene(args: argparse.Namespace) -> int:
     """``colgnn scene new``: a scene from a mesh file, its summary and a picture."""
     out = Path(args.out) if args.out else (scene_dirs()[0] if scene_dirs() else Path("scenes"))
     new = create_scene(args.name, args.object, args.size, tool=args.tool, material=args.material, ground=args.ground,
-                       out_dir=out, up=args.up, force=args.force)
+                       out_dir=out, up=args.up, force=args.force,
+                       check=lambda scene: check_settle(scene, args.max_sag).line())
     print(format_summary(new))
     picture = render_scene(new.scene, new.toml.with_name(f"{new.name}-scene.png"))
     print(f"wrote {', '.join(str(f) for f in new.files)} and {picture}")
@@ -418,6 +420,9 @@ def _add_scene(sub) -> None:
                    help=f"{', '.join(MATERIALS)} (default rubber), or Young's modulus (Pa), Poisson ratio, density")
     n.add_argument("--ground", action="store_true",
                    help="rest the object on a ground plane (default: glue its bottom band in place)")
+    n.add_argument("--max-sag", type=float, default=MAX_SAG_FRACTION, metavar="FRACTION",
+                   help="refuse an object that sags more than this fraction of its height while it settles under "
+                        f"gravity (default {MAX_SAG_FRACTION}; checked at ci with the ground-truth solver)")
     n.add_argument("--up", choices=("x", "y", "z", "-x", "-y", "-z"), default=None,
                    help="the file's up axis (default: z for .stl, y for .obj/.ply/.msh)")
     n.add_argument("--out", default=None, metavar="DIR",

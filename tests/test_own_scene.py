@@ -104,6 +104,7 @@ def test_scene_new_writes_a_derived_scene_that_every_command_finds():
     for f in ("pebble.toml", "pebble-ci.npz", "pebble-full.npz", "pebble-surface.obj", "pebble-scene.png"):
         assert (d / f).is_file(), f
     assert "repairs  none needed" in res.stdout and "tool      sphere: radius 15.0 mm" in res.stdout
+    assert "checked   under gravity the object sags" in res.stdout and "settled in" in res.stdout
     cfg = tomllib.loads((d / "pebble.toml").read_text())
     assert cfg["tool"]["radius"] == pytest.approx(0.015, rel=1e-3)          # 0.15 x the longest side
     assert cfg["object"]["pin_height"] > 0 and "ground" not in cfg          # no --ground: the bottom is glued
@@ -121,6 +122,37 @@ def test_scene_new_writes_a_derived_scene_that_every_command_finds():
     again = own.colgnn("scene", "new", "pebble", "--object", str(own.PEBBLE), "--size", "0.1", "--tool", "sphere",
                        "--out", str(d))
     assert again.returncode == 2 and "exists; pass --force" in again.stderr
+
+
+def test_an_object_that_does_not_hold_its_shape_is_refused_before_anything_is_written(tmp_path):
+    """The settling check of `scene new` (sim.settle) on the pebble: the real solver settles it under gravity; it
+    sags a little (accepted by default), and more than a tiny allowed sag is refused naming the fixes; a refusing
+    check leaves the output folder empty."""
+    from colgnn_core.scenes.custom import create_scene
+    from colgnn_core.scenes.scene import build_scene, read_config_file
+    from colgnn_core.sim.settle import MAX_SAG_FRACTION, check_settle, settle_report
+
+    res, _ = own.created()
+    assert res.returncode == 0, res.stderr
+    scene = build_scene(own.NAME, "ci", read_config_file(own.scene_dir() / "pebble.toml"), base_dir=own.scene_dir())
+    r = settle_report(scene)
+    assert r.converged and 1 <= r.steps < 100
+    assert 0 < r.sag_m < MAX_SAG_FRACTION * np.ptp(scene.object.vertices[:, 2])
+    assert r.sag_fraction == pytest.approx(r.sag_m / np.ptp(scene.object.vertices[:, 2]))
+    assert r.centroid_drop_m > 0  # gravity pulls it down, not up
+    assert check_settle(scene).sag_m == pytest.approx(r.sag_m)
+    with pytest.raises(InputError, match=r"does not hold its shape.*--ground.*--max-sag 0\.05"):
+        check_settle(scene, max_sag_fraction=1e-6)
+    with pytest.raises(InputError, match="must be > 0"):
+        check_settle(scene, max_sag_fraction=0.0)
+
+    def refuse(sc):
+        raise InputError("refused by the check")
+
+    out = tmp_path / "scenes"
+    with pytest.raises(InputError, match="refused by the check"):
+        create_scene("pebble2", own.PEBBLE, 0.1, "sphere", out_dir=out, check=refuse)
+    assert not list(out.glob("*"))
 
 
 @pytest.mark.timeout(900)

@@ -37,6 +37,7 @@ import io
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -309,13 +310,20 @@ class NewScene:
     surface: dict
     meshes: dict[str, dict]
     scene: Scene  # the new scene at ci, read back from the written files
+    checks: list[str] = field(default_factory=list)  # what the caller's ``check`` reported (summary lines)
 
 
 def create_scene(name: str, object_path: str | Path, size: float, tool: str | ToolSpec = "sphere",
                  material: str = "rubber", ground: bool = False, out_dir: str | Path = "scenes",
-                 up: str | None = None, force: bool = False, threads: int = 1) -> NewScene:
+                 up: str | None = None, force: bool = False, threads: int = 1,
+                 check: Callable[[Scene], str] | None = None) -> NewScene:
     """Make scene ``name`` from a mesh file (see the module docstring); InputError naming any problem, before
-    anything is written."""
+    anything is written.
+
+    ``check``: called with the derived scene at ci before anything is written (e.g. the settling check of
+    :mod:`colgnn_core.sim.settle`, which this layer cannot import); it raises InputError to refuse the scene, or
+    returns a line for the summary.
+    """
     name = check_name(name)
     spec = parse_tool(tool) if isinstance(tool, str) else tool
     mat = parse_material(material)
@@ -335,7 +343,7 @@ def create_scene(name: str, object_path: str | Path, size: float, tool: str | To
         info[res] = {"vertices": mesh.num_vertices, "surface_vertices": int(len(mesh.surface_vertices)),
                      "tets": int(len(mesh.tets)), "mean_edge": _mean_edge(mesh), **how}
     cfg = derive_config(name, surface, meshes, spec, mat, ground)
-    _check(name, cfg, meshes)
+    checks = _check(name, cfg, meshes, check)
 
     files = {f"{name}-ci.npz": meshes["ci"], f"{name}-full.npz": meshes["full"]}
     for fname, mesh in files.items():
@@ -353,14 +361,17 @@ def create_scene(name: str, object_path: str | Path, size: float, tool: str | To
                  "extents": surface.extents.tolist()}
     scene = build_scene(name, "ci", read_config_file(toml_path), base_dir=out)
     return NewScene(name, toml_path, [out / f for f in (*files, f"{name}-surface.obj", f"{name}.toml")], cfg,
-                    surf_info, info, scene)
+                    surf_info, info, scene, checks)
 
 
-def _check(name: str, cfg: dict, meshes: dict[str, TetMesh]) -> None:
+def _check(name: str, cfg: dict, meshes: dict[str, TetMesh], check: Callable[[Scene], str] | None = None
+           ) -> list[str]:
     """Build the scene at both resolutions from the derived config (meshes in memory) and check that its family's
-    trajectories stay in the workspace: a derivation that does not work is refused before anything is written."""
+    trajectories stay in the workspace, then run the caller's ``check`` on the ci scene: a derivation that does not
+    work is refused before anything is written. Returns the ``check``'s summary lines."""
     import tempfile
 
+    lines: list[str] = []
     with tempfile.TemporaryDirectory(prefix="colgnn-scene-") as tmp:
         for res in RESOLUTIONS:
             meshes[res].save_npz(Path(tmp) / cfg["object"][res]["file"])
@@ -374,6 +385,9 @@ def _check(name: str, cfg: dict, meshes: dict[str, TetMesh]) -> None:
             if not np.isfinite(tool_contact_height(scene.object, scene.tool, np.asarray(cfg["family"]["target_xy"]),
                                                    scene.tool_rest_pose[3:])):
                 raise InputError(f"the derived {res} scene's tool misses the object at its target")
+            if check is not None and res == "ci":
+                lines.append(check(scene))
+    return lines
 
 
 def format_summary(new: NewScene) -> str:
@@ -408,4 +422,5 @@ def format_summary(new: NewScene) -> str:
               f"  family    presses, drags, plunges over the surface; depth {1e3 * f['depth'][0]:.1f}-"
               f"{1e3 * f['depth'][1]:.1f} mm, speed {1e3 * f['speed'][0]:.1f}-{1e3 * f['speed'][1]:.1f} mm/step, "
               f"tilt up to {f['tilt_deg'][1]:g} deg, first at ({f['target_xy'][0]:.3f}, {f['target_xy'][1]:.3f})"]
+    lines += [f"  checked   {line}" for line in new.checks]
     return "\n".join(lines)

@@ -253,6 +253,8 @@ class IPCSimulator:
         self.kappa = 0.0
         self._settle = bool(settle)
         self.initial_tool_pose = validate_pose(scene.tool_rest_pose if initial_tool_pose is None else initial_tool_pose)
+        self.settle_steps = 0          # implicit steps the last settle took (0: no settle; set by reset)
+        self.settle_converged = True   # False: the object was still moving after the settle's step cap
         self.reset()
 
     # ================================================================== state
@@ -274,6 +276,7 @@ class IPCSimulator:
         if self.tool_distance() <= self.dmin:
             raise SimulationError(f"scene {self.scene.name!r}: at frame 0 surfaces are closer than dmin = "
                                   f"{self.dmin:.3g} m")
+        self.settle_steps, self.settle_converged = 0, True
         if self._settle and np.any(self.gravity != 0) and (self.ground is not None or self.pinned.any()):
             self._settle_under_gravity()
 
@@ -847,7 +850,7 @@ class IPCSimulator:
         hit = _SETTLE_CACHE.get(key)
         if hit is not None:
             # kappa is state too: a cached settle must start frame 1 exactly like a computed one
-            self.x[: self.n_obj], self.kappa = hit[0], hit[1]
+            self.x[: self.n_obj], self.kappa, self.settle_steps, self.settle_converged = hit
             self.v = np.zeros((self.n_obj, 3))
             return
         if self.ground is not None and not self.pinned.any():
@@ -856,7 +859,9 @@ class IPCSimulator:
                 self.x[: self.n_obj, 2] -= drop
         tol = self.newton_tol * self.bbox_diagonal * self.dt
         target = self.x[self.n_obj :].copy()
+        self.settle_steps, self.settle_converged = 0, False
         for _ in range(max_steps):
+            self.settle_steps += 1
             xo = self.x[: self.n_obj]
             x_tilde = xo + self.dt**2 * self.gravity
             x_tilde[self.pinned] = xo[self.pinned]
@@ -866,8 +871,9 @@ class IPCSimulator:
             moved = float(np.abs(x_new[: self.n_obj] - xo).max())
             self.x = x_new
             if moved < tol:
+                self.settle_converged = True
                 break
         self.v = np.zeros((self.n_obj, 3))
         if len(_SETTLE_CACHE) > 16:
             _SETTLE_CACHE.clear()
-        _SETTLE_CACHE[key] = (self.x[: self.n_obj].copy(), self.kappa)
+        _SETTLE_CACHE[key] = (self.x[: self.n_obj].copy(), self.kappa, self.settle_steps, self.settle_converged)
