@@ -63,6 +63,29 @@ def test_report_has_every_table_and_picture(report):
     assert f"{sp['speedup_vs_ipc']:.0f}×" in md
 
 
+def test_accuracy_leads_with_the_relative_error_and_both_trivial_baselines(report):
+    """The report's accuracy table: the relative displacement error of each model row next to `rest` (exactly 1.0:
+    nothing moves) and `rest + correction`, the same values as the per-model report of `colgnn evaluate`, and a
+    discussion line that says whether the model beats them."""
+    rep, out = report
+    s = rep.scenes[fx.SCENE]
+    assert list(s.relative) == ["baseline", "full", "full+correction", "node", "rest", "rest+correction"]
+    assert s.relative["rest"]["all"].mean == pytest.approx(1.0) and s.relative["rest"]["contact"].mean == \
+        pytest.approx(1.0)
+    per_model = json.loads((out / "results" / fx.SCENE / "full" / "metrics.json").read_text())["relative"]
+    assert s.relative["full+correction"]["all"].mean == pytest.approx(per_model["corrected"]["all"]["mean"])
+    rc_contact = per_model["rest_correction"]["contact"]["mean"]
+    assert s.relative["rest+correction"]["contact"].mean == pytest.approx(rc_contact)
+    md = (out / "RESULTS.md").read_text()
+    rc = s.relative["rest+correction"]
+    assert (f"| **rest + correction (no network)** | {rc['all'].mean:.3f} ± {rc['all'].std:.3f} | "
+            f"{rc['contact'].mean:.3f} ± {rc['contact'].std:.3f} |") in md
+    assert "| rest (nothing moves) | 1.000 ± 0.000 | 1.000 ± 0.000 |" in md
+    assert md.index("| rest (nothing moves) |") < md.index("| row | step 1 |")  # relative first, RMSE second
+    m = s.relative["full+correction"]["all"].mean
+    assert "**Fidelity.** " in md and f"{fx.SCENE}: {m:.2f} / " in md
+
+
 def test_frontier_section_from_the_shipped_frontier_checkpoints(report):
     rep, out = report
     f = rep.scenes[fx.SCENE].frontier.result

@@ -39,9 +39,9 @@ from colgnn_core.evaluation.accuracy import evaluate, plot_curves
 from colgnn_core.evaluation.frontier import frontier, model_size
 from colgnn_core.evaluation.measure import stats, test_files
 from colgnn_core.evaluation.render import render_strip
-from colgnn_core.evaluation.report_data import (ROWS, FrontierResult, FrontierSection, HardCase, Pictures,
-                                                ResultsReport, Row, SceneResults, Settings, SkippedScene, SpeedRow,
-                                                Stat)
+from colgnn_core.evaluation.report_data import (RELATIVE_ROWS, ROWS, FrontierResult, FrontierSection, HardCase,
+                                                MeanStd, Pictures, ResultsReport, Row, SceneResults, Settings,
+                                                SkippedScene, SpeedRow, Stat)
 from colgnn_core.evaluation.report_markdown import format_results
 from colgnn_core.evaluation.speed import timed_rollout
 from colgnn_core.evaluation.stability import check_rollout, hard_cases
@@ -155,11 +155,13 @@ def plot_errors(scene_name: str, rows: dict[str, Row], path: Path) -> Path:
                        dashed=(labels["full+correction"],))
 
 
-def accuracy_rows(scene_name: str, ckpts: dict[str, Path], data_dir: Path, out: Path,
-                  progress: bool) -> tuple[dict[str, Row], list[str], list[int]]:
-    """(rows in ROWS order, test sequence names, their frame counts): every variant evaluated raw, the full model
-    also through the correction; the per-model reports go to ``out/results/<scene>/<variant>``."""
+def accuracy_rows(scene_name: str, ckpts: dict[str, Path], data_dir: Path, out: Path, progress: bool
+                  ) -> tuple[dict[str, Row], dict[str, dict[str, MeanStd]], list[str], list[int]]:
+    """(rows in ROWS order, relative displacement errors in RELATIVE_ROWS order, test sequence names, their frame
+    counts): every variant evaluated raw, the full model also through the correction and as the node runs it,
+    next to the two trivial baselines; the per-model reports go to ``out/results/<scene>/<variant>``."""
     rows: dict[str, Row] = {}
+    relative: dict[str, dict] = {}
     sequences: list[str] | None = None
     frames: list[int] | None = None
     for variant, path in ckpts.items():
@@ -168,11 +170,16 @@ def accuracy_rows(scene_name: str, ckpts: dict[str, Path], data_dir: Path, out: 
                      correction_modes=modes, progress=progress)
         rows.setdefault("ground_truth", Row.from_dict(e["rows"]["ground_truth"]))  # rmse None: the reference
         rows[variant] = Row.from_dict(e["rows"]["raw"])
+        relative[variant] = e["relative"]["raw"]
         if variant == "full":
             rows["full+correction"] = Row.from_dict(e["rows"]["corrected"])
+            relative.update({"full+correction": e["relative"]["corrected"], "node": e["relative"]["node"],
+                             "rest": e["relative"]["rest"], "rest+correction": e["relative"]["rest_correction"]})
         sequences = sequences if sequences is not None else e["sequences"]
         frames = frames if frames is not None else e["frames"]
-    return {k: rows[k] for k, _ in ROWS if k in rows}, sequences, frames
+    rel = {k: {part: MeanStd.from_dict(relative[k][part]) for part in ("all", "contact")}
+           for k, _ in RELATIVE_ROWS if k in relative}
+    return {k: rows[k] for k, _ in ROWS if k in rows}, rel, sequences, frames
 
 
 def frontier_section(scene_name: str, ckpts: dict[str, Path], models_dir: Path, data_dir: Path, out: Path,
@@ -210,7 +217,7 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
     speed_row = speed(loaded, scene, data_dir, threads, compile)
     speed_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rows, sequences, seq_frames = accuracy_rows(scene_name, ckpts, data_dir, out, progress)
+    rows, relative, sequences, seq_frames = accuracy_rows(scene_name, ckpts, data_dir, out, progress)
     evaluate_s = time.perf_counter() - t0
     img = ensure_writable_dir(out / "img")
     errors = plot_errors(scene_name, rows, img / f"{scene_name}_rmse.png")
@@ -225,7 +232,7 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
                         checkpoints={v: str(p) for v, p in ckpts.items()}, model_sizes=model_sizes,
                         test_data_s=test_data_s, speed=speed_row, speed_s=speed_s, sequences=sequences,
                         frames=seq_frames, evaluate_s=evaluate_s, rows=rows, pictures=pics, hard_cases=hard,
-                        hard_cases_s=hard_s, frontier=front)
+                        hard_cases_s=hard_s, frontier=front, relative=relative)
 
 
 def results(out_dir="docs", *, scenes=None, data_root="data/results", models_dir=None, test_sequences: int = 2,

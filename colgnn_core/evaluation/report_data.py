@@ -11,6 +11,13 @@ import typing
 from dataclasses import dataclass, field
 
 # Rows of the tables: (key in SceneResults.rows, label).
+# Rows of the relative-error table (key, label): each variant's raw network, the full model corrected and as the
+# node runs it, then the two trivial baselines (issue: "every accuracy table carries two trivial baselines").
+RELATIVE_ROWS = (("subspace", "subspace (Holden et al. 2019), raw"), ("baseline", "MeshGraphNets baseline, raw"),
+                 ("no-compact", "ours without L_compact, raw"), ("full", "ours, raw network"),
+                 ("full+correction", "ours + correction (no caps, no rest relaxation)"),
+                 ("node", "ours as the node runs it (caps + rest relaxation)"), ("rest", "rest (nothing moves)"),
+                 ("rest+correction", "rest + correction (no network)"))
 ROWS = (("ground_truth", "ground truth (IPC)"), ("subspace", "subspace (Holden et al. 2019)"),
         ("baseline", "baseline (MeshGraphNets)"), ("no-compact", "no-compact (ablation)"),
         ("full", "full (paper method)"), ("full+correction", "full + correction (colgnn)"))
@@ -271,6 +278,8 @@ class SceneResults(Record):
     hard_cases: dict[str, HardCase]
     hard_cases_s: float
     frontier: FrontierSection | None = field(default=None, metadata=OMIT_NONE)
+    # relative displacement error (all vertices, contact region) by row key of RELATIVE_ROWS
+    relative: dict[str, dict[str, MeanStd]] = field(default_factory=dict)
 
     def size(self, key: str) -> str:
         """latent/MP steps/MLP layers of the checkpoint of row ``key`` ('' for models without a graph network)."""
