@@ -175,10 +175,12 @@ class SelfContact:
     # -- detection ------------------------------------------------------------------------------------------------
     def hot(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
         """Bool [N]: surface vertices farther than ``quiet`` from rest at t or t+1."""
-        hot = np.zeros(self.n, dtype=np.bool_)
-        S, q2 = self.S, self.quiet * self.quiet
-        hot[S] = (((x0[S] - self.rest[S]) ** 2).sum(1) > q2) | (((x1[S] - self.rest[S]) ** 2).sum(1) > q2)
-        return hot
+        return self.deviation(x0, x1) > self.quiet
+
+    def deviation(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+        """[N] m: each surface vertex's larger distance from rest at t and t+1 (0 off the surface)."""
+        return _deviation(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(x1, dtype=np.float64),
+                          self.rest, self.S, self.n)
 
     def check(self, x0: np.ndarray, x1: np.ndarray, *, moving: np.ndarray | None = None) -> SelfCheck:
         """Self pairs of the straight step x0 -> x1 ([N,3] m) that may come closer than the threshold, and the
@@ -189,12 +191,10 @@ class SelfContact:
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
         x1 = np.ascontiguousarray(x1, dtype=np.float64)
         F, E = self.surface.faces, self.surface.edges
-        hot = self.hot(x0, x1) if moving is None else moving
+        dev = self.deviation(x0, x1) if moving is None else None
+        hot = dev > self.quiet if moving is None else moving
         vf, ee = _candidates(x0, x1, hot, self.S, F, E, SELF_CLEARANCE)
         if moving is None:
-            dev = np.zeros(self.n)
-            S = self.S
-            dev[S] = np.sqrt(np.maximum(((x0[S] - self.rest[S]) ** 2).sum(1), ((x1[S] - self.rest[S]) ** 2).sum(1)))
             vf = np.concatenate([vf, self.rest_vf[_rest_pairs_needed(self.rest_vf, self.rest_vf_d, dev, hot, F, E,
                                                                      False, SELF_CLEARANCE)]])
             ee = np.concatenate([ee, self.rest_ee[_rest_pairs_needed(self.rest_ee, self.rest_ee_d, dev, hot, F, E,
@@ -394,6 +394,22 @@ def _share(edges, a, b):
 
 
 @njit(cache=True)
+def _deviation(x0, x1, rest, S, n):
+    """[n]: max(|x0_v - rest_v|, |x1_v - rest_v|) for v in S, 0 elsewhere (m)."""
+    dev = np.zeros(n)
+    for v in S:
+        a = 0.0
+        b = 0.0
+        for k in range(3):
+            da = x0[v, k] - rest[v, k]
+            db = x1[v, k] - rest[v, k]
+            a += da * da
+            b += db * db
+        dev[v] = np.sqrt(max(a, b))
+    return dev
+
+
+@njit(cache=True)
 def _candidates(X0, X1, hot, S, faces, edges, grow):
     """Non-adjacent (vertex, face) [K,2] and (edge, edge) [J,2] pairs with a hot vertex whose swept boxes come within
     ``grow`` (m): the hot primitives against every primitive whose box meets the hot region's box."""
@@ -579,6 +595,7 @@ def warm_up_self_contact() -> None:
     s = Surface.from_faces(faces, 4)
     hot = np.ones(4, dtype=np.bool_)
     vf, ee = _candidates(X, X + 0.01, hot, s.vertices, faces, s.edges, 0.1)
+    _deviation(X, X + 0.01, X, s.vertices, 4)
     _pair_distances(X, vf, ee, faces, s.edges)
     for pairs, is_ee in ((vf, False), (ee, True)):
         _rest_pairs_needed(pairs, np.zeros(len(pairs)), np.zeros(4), hot, faces, s.edges, is_ee, 0.0)

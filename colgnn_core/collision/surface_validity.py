@@ -46,9 +46,33 @@ class ValidityCounts:
     torn: int = 0
 
 
-def best_rotation(X: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """Q [3,3]: the rotation of the best rigid alignment (least squares, Kabsch) of points X [K,3] onto rest [K,3]."""
-    A = (X - X.mean(axis=0)).T @ (rest - rest.mean(axis=0))
+@njit(cache=True)
+def _cross_covariance(X, rest, ids):
+    """sum_k (X_i - mean X)(rest_k - mean rest)^T [3,3] over the rows ``ids`` of X and the rows of ``rest`` (one
+    pass, no copies: the alignment runs on every check of a step)."""
+    n = ids.shape[0]
+    sx = np.zeros(3)
+    sr = np.zeros(3)
+    sxr = np.zeros((3, 3))
+    for k in range(n):
+        i = ids[k]
+        for a in range(3):
+            sx[a] += X[i, a]
+            sr[a] += rest[k, a]
+            for b in range(3):
+                sxr[a, b] += X[i, a] * rest[k, b]
+    for a in range(3):
+        for b in range(3):
+            sxr[a, b] -= sx[a] * sr[b] / n
+    return sxr
+
+
+def best_rotation(X: np.ndarray, rest: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+    """Q [3,3]: the rotation of the best rigid alignment (least squares, Kabsch) of points X[ids] [K,3] (default:
+    all rows of X) onto rest [K,3]."""
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    ids = np.arange(len(X)) if ids is None else np.ascontiguousarray(ids, dtype=np.int64)
+    A = _cross_covariance(X, np.ascontiguousarray(rest, dtype=np.float64), ids)
     U, _, Vt = np.linalg.svd(A)
     d = 1.0 if np.linalg.det(U @ Vt) >= 0 else -1.0
     return np.ascontiguousarray((U @ np.diag([1.0, 1.0, d]) @ Vt).T)
@@ -122,7 +146,7 @@ class SurfaceValidity:
     def codes(self, X: np.ndarray) -> np.ndarray:
         """Per-face defect bits [F] int8 (FLIPPED=1, COLLAPSED=2, TORN=4; 0: valid) of positions X [N,3] (m)."""
         X = np.ascontiguousarray(X, dtype=np.float64)
-        Q = best_rotation(X[self.vertices], self.rest)
+        Q = best_rotation(X, self.rest, self.vertices)
         return _face_codes(X, Q, self.faces, self.rest_normals, self.rest_lengths, self.max_stretch,
                            self.min_area_ratio)
 
