@@ -44,6 +44,7 @@ def test_report_has_every_table_and_picture(report):
         assert heading in md
     s = data["scenes"][fx.SCENE]
     assert s["resumed_sequences"] == 1 and "1 sequence(s) resumed" in md
+    assert data["code"] not in ("", "unknown") and f"code {data['code']}." in md  # the version it measured
     assert set(s["rows"]) == {"ground_truth", "baseline", "full", "full+correction"}
     assert "| subspace (Holden et al. 2019) | not shipped |" in md and "| no-compact (ablation) | not shipped |" in md
     # rows name their network size (the fixture's tiny model)

@@ -51,7 +51,7 @@ from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION, Predictor
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import load_scene, scene_names
 from colgnn_core.sim.dataset import generate_dataset, simulate_sequence
-from colgnn_core.evaluation.provenance import machine
+from colgnn_core.evaluation.provenance import code_version, machine
 
 VARIANTS = ("subspace", "baseline", "no-compact", "full")
 PICTURE_DPI = 60  # the committed strips stay small (~100-150 KB each)
@@ -264,7 +264,7 @@ def results(out_dir="docs", *, scenes=None, data_root="data/results", models_dir
     report = ResultsReport(generated=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), machine=machine(),
                            settings=Settings(test_sequences=test_sequences, frames=frames, threads=threads,
                                              compile=compile, hard_frames=hard_frames, random_steps=random_steps),
-                           scenes={})
+                           scenes={}, code=code_version())
     for name in names:
         if progress:
             print(f"== {name}", flush=True)

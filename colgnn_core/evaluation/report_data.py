@@ -320,6 +320,7 @@ class ResultsReport(Record):
     scenes: dict[str, SceneResults | SkippedScene]
     wall_s: float = 0.0
     files: dict[str, str] | None = field(default=None, metadata=OMIT_NONE)
+    code: str = ""  # the code version measured (provenance.code_version), "" in reports older than the field
 
     def measured(self) -> dict[str, SceneResults]:
         """The scenes that were measured (not skipped), in report order."""

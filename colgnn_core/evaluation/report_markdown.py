@@ -53,7 +53,8 @@ def _header(report: ResultsReport) -> list[str]:
     lines = ["# colgnn results", "",
              f"Regenerated end to end by `make results` (= `colgnn evaluate --all --out docs`) on "
              f"{report.generated}: **{report.wall_s / 60:.0f} min** on this machine ({m.cpu}, {m.cores} cores, "
-             f"Python {m.python}, torch {m.torch}). The Predictor ran with {st.threads} torch thread(s)"
+             f"Python {m.python}, torch {m.torch}), code {report.code or 'not recorded'}. The Predictor ran with "
+             f"{st.threads} torch thread(s)"
              f"{' and torch.compile' if st.compile else ''}. Test data: {st.test_sequences} held-out "
              f"trajectories × {st.frames} frames per scene, simulated by the project's IPC solver in this run"
              + (f" ({resumed} sequence(s) resumed from an earlier run of the same command)" if resumed else "")
