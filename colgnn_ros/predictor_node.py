@@ -32,6 +32,7 @@ and msg_tools (marker bytes, counts, diagnostics):
 
 from __future__ import annotations
 
+import faulthandler
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -385,6 +386,9 @@ class PredictorNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``predictor``; returns the process exit code."""
+    # A fatal signal in native code (torch, numba, DDS) then leaves the Python stack of every thread in the log:
+    # an intermittent SIGSEGV of the node was seen twice on 2026-11-24 and has no diagnosis yet.
+    faulthandler.enable()
     return run_node(PredictorNode, prog=NODE_NAME, summary=SUMMARY, specs=PARAMETERS, args=args)
 
 
