@@ -10,18 +10,23 @@
   it until the node reports it is done or SIGINT/SIGTERM arrives, and returns the exit code
   (0 = finished or stopped by a signal, 2 = bad parameters, with one error line naming the problem).
 
-Signals: ``rclpy.init`` installs rclpy's SIGINT and SIGTERM handlers (``SignalHandlerOptions.ALL``).
-They shut the *default* context down from the signal handler itself, which wakes the executor's
-wait at once; the executor then raises ``ExternalShutdownException`` and :func:`run_node` tears the
-node down and returns 0. (They do not shut down a private ``Context``: there SIGTERM kills the
-process with 143 and SIGINT goes unanswered, so a node process uses the default context.) A signal
-that arrives while the node is being built shuts the context down too; the construction error that
-follows is recognised as a shutdown, not a failure. Before ``rclpy.init`` (interpreter start-up and
-imports, well under a second) a SIGTERM still ends the process the default way.
+Signals: the node process handles SIGINT and SIGTERM itself (``rclpy.init`` with
+``SignalHandlerOptions.NO``). The handler raises :class:`ShutdownRequested` in the main thread; the
+executor is spun in short waits (:data:`SPIN_WAIT_S`), so that happens within a fraction of a second.
+:func:`run_node` then destroys the node *while the context is still valid*, and only then shuts
+the context down, and returns 0. rclpy's own handlers shut the context down first, from the signal
+handler; destroying a Fast DDS subscription of a node whose context is already shut down crashed
+the process with SIGSEGV now and then (seen in ``make demo`` and in the installed-predictor test:
+``Subscription.destroy`` under ``Node.destroy_node``). A signal that arrives while the node is being
+built ends it the same way. While the node is torn down, the signals have their previous handlers
+back, so a second Ctrl-C or SIGTERM still ends a teardown that hangs. Before ``run_node`` installs
+its handlers (interpreter start-up and imports, well under a second) a SIGTERM ends the process the
+default way.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -30,6 +35,7 @@ import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -149,18 +155,32 @@ def format_help(prog: str, summary: str, specs: Sequence[ParamSpec]) -> str:
     return "\n".join(lines)
 
 
+SPIN_WAIT_S = 0.1
+"""Longest executor wait (s): how long a signal may wait for the main thread to run Python again."""
+
+
+class ShutdownRequested(BaseException):
+    """SIGINT or SIGTERM asked the node process to stop (raised by :func:`run_node`'s handler).
+
+    A BaseException, like KeyboardInterrupt, so that a callback's "log it and go on" handler does not
+    swallow it.
+    """
+
+
+def _request_shutdown(signum: int, _frame: object) -> None:
+    raise ShutdownRequested(signal.Signals(signum).name)
+
+
 def spin(node: Node, done: Future | None = None) -> None:
     """Spin ``node`` until ``done`` completes (forever if None) or its context is shut down.
 
-    Raises ExternalShutdownException (or KeyboardInterrupt) when a signal ends it.
+    Waits at most :data:`SPIN_WAIT_S` at a time, so that a Python signal handler runs promptly.
     """
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     try:
-        if done is None:
-            executor.spin()
-        else:
-            executor.spin_until_future_complete(done)
+        while node.context.ok() and (done is None or not done.done()):
+            executor.spin_once(timeout_sec=SPIN_WAIT_S)
     finally:
         executor.shutdown(timeout_sec=1.0)
 
@@ -188,9 +208,9 @@ def run_node(make_node: Callable[[], Node], *, prog: str, summary: str, specs: S
         logger.error(f"unexpected argument(s) {' '.join(extra)}; set parameters with --ros-args -p NAME:=VALUE "
                      f"(see {prog} --help)")
         return EXIT_BAD_INPUT
-    # The default context: rclpy's signal handlers shut down only that one (a private Context
-    # would leave SIGTERM to kill the process and SIGINT unanswered).
-    rclpy.init(args=argv)
+    # The default context, with our handlers instead of rclpy's (see the module docstring).
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    previous = {sig: signal.signal(sig, _request_shutdown) for sig in (signal.SIGINT, signal.SIGTERM)}
     node: Node | None = None
     try:
         node = make_node()
@@ -199,13 +219,11 @@ def run_node(make_node: Callable[[], Node], *, prog: str, summary: str, specs: S
     except InputError as exc:
         logger.error(str(exc))
         return EXIT_BAD_INPUT
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except (ShutdownRequested, KeyboardInterrupt, ExternalShutdownException):
         return EXIT_OK
-    except Exception:
-        if not rclpy.ok():  # a signal shut the context down while the node was being built
-            return EXIT_OK
-        raise
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

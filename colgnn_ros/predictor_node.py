@@ -386,8 +386,9 @@ class PredictorNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``predictor``; returns the process exit code."""
-    # A fatal signal in native code (torch, numba, DDS) then leaves the Python stack of every thread in the log:
-    # an intermittent SIGSEGV of the node was seen twice on 2026-11-24 and has no diagnosis yet.
+    # A fatal signal in native code (torch, numba, DDS) then leaves the Python stack of every thread in the log.
+    # That is how the intermittent SIGSEGV on Ctrl-C was traced to tearing the node down after rclpy's own signal
+    # handler had shut the context down (fixed in colgnn_ros.common.run_node).
     faulthandler.enable()
     return run_node(PredictorNode, prog=NODE_NAME, summary=SUMMARY, specs=PARAMETERS, args=args)
 
