@@ -179,7 +179,7 @@ class PredictorNode(Node):
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
                                          threads=p["threads"] or auto_threads(), compile=p["compile"],
                                          limits=p["limits"], self_contact=p["self_contact"],
-                                         rest_relaxation=p["rest_relaxation"])
+                                         rest_relaxation=p["rest_relaxation"], warm_up=True)
         if pred.scene.name != p["scene"]:
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "
                              f"(set scene:={pred.scene.name})")

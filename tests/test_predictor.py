@@ -225,6 +225,26 @@ def test_from_checkpoint_needs_a_model(scene, tmp_path, monkeypatch):
         _pred(scene, max_substeps=0)
 
 
+def test_warm_up_reaches_contact_and_leaves_no_trace(scene, ckpt):
+    """warm_up=True (what the node asks for) steps into contact and back, then resets: the predictor starts from
+    the same state and steps exactly like one that was not warmed up."""
+    cold = Predictor.from_checkpoint(ckpt, threads=1)
+    warm = Predictor.from_checkpoint(ckpt, threads=1, warm_up=True)
+    assert warm.warm_up_s > 0 and cold.warm_up_s == 0
+    _assert_same_state(_state(cold), _state(warm))
+    for pose in _contact_poses(scene, 8)[1:]:
+        a, b = cold.step(pose), warm.step(pose)
+        np.testing.assert_array_equal(a.positions, b.positions)
+    # the warm-up's deepest pose is in contact with the rest shape: the correction's contact path ran
+    from colgnn_core.runtime.predictor import WARM_UP_DEPTH
+    from colgnn_core.scenes.hard_cases import press_pose
+    probe = Predictor.from_checkpoint(ckpt, threads=1)
+    rest = np.asarray(scene.tool_rest_pose)
+    bottom = press_pose(scene, WARM_UP_DEPTH)
+    res = [probe.step(p) for p in probe._path(rest, bottom, 0.9 * probe.max_translation)]
+    assert sum(r.collision_counts()["vertex_face_before"] + r.collision_counts()["edge_edge_before"] for r in res) > 0
+
+
 def test_compiled_network_matches_eager(scene, ckpt):
     """compile=True: the same trajectory within float32 rounding of the eager network, and the
     compiled function is the one in use (no silent fallback)."""

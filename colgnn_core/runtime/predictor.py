@@ -55,12 +55,14 @@ from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.stepper import RawStepper
 from colgnn_core.scenes import load_scene
+from colgnn_core.scenes.hard_cases import press_pose
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 
 __all__ = ["Predictor", "PredictorState", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS",
            "RECOMMENDED_REST_RELAXATION"]
 
 DEFAULT_MAX_SUBSTEPS = 16
+WARM_UP_DEPTH = 0.3  # Predictor.warm_up: a fraction of the way from the surface to the deepest valid pose
 RECOMMENDED_REST_RELAXATION = 0.05  # the ROS node's default (deviation decays as 0.975^steps once the tool is away)
 # After this many consecutive released model steps (see Predictor._released) the relaxation rate ramps linearly from
 # ``rest_relaxation`` to 1 over SETTLE_RAMP_STEPS more: a released elastic object is at rest a few seconds later,
@@ -239,6 +241,9 @@ class Predictor:
             ``SETTLE_RAMP_STEPS`` (a distorted network state can hold a deformation against a constant small
             rate: x* - rest = network acceleration / a). 0 (default): off. GNN models only; applied before
             the correction, so the guarantee is unchanged.
+        warm_up: before returning, step into contact at the scene's target and back, then reset
+            (:meth:`warm_up`): the first real pose then meets no lazy compilation (numba's kernels on a fresh
+            clone, torch's specialisations). The node does this; a fresh clone's first start takes ~25 s longer.
         self_contact: run the self-contact stage after the tool pass (with ``correction``): the published object
             never passes through itself and its surface stays valid (docs/COLLISION_GUARANTEE.md). Off by default:
             it costs far more than its 3 ms budget today (tens of ms a step, seconds on a torn drag; see
@@ -249,7 +254,7 @@ class Predictor:
                  threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
                  max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0,
-                 self_contact: bool = False):
+                 self_contact: bool = False, warm_up: bool = False):
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
         if not 0.0 <= rest_relaxation < 1.0:
@@ -296,6 +301,7 @@ class Predictor:
         if self.compiled:
             self.model.compile_network()
             self._warm_up_network()
+        self.warm_up_s = self.warm_up() if warm_up else 0.0
 
     @torch.inference_mode()
     def _warm_up_network(self) -> None:
@@ -310,6 +316,30 @@ class Predictor:
             feats = torch.zeros((2 * pairs, g.world.features.shape[1]), dtype=g.world.features.dtype)
             # replace(): keep every other part of the graph (a coarse level's edges, for one)
             self.model.network(replace(g, world=EdgeSet(feats, send, recv)))
+
+    def warm_up(self, depth: float = WARM_UP_DEPTH) -> float:
+        """Press ``depth`` of the way from the surface to the deepest valid pose at the scene's target in single
+        model steps, go back to the rest pose in substepped steps, then :meth:`reset`. Every stage (graph, network,
+        correction with contact, clearance, substep check, lifting, self-contact) runs once, so that its lazily
+        compiled kernels exist before the first real pose. Returns the seconds it took."""
+        started = time.monotonic()
+        rest = np.asarray(self.scene.tool_rest_pose, dtype=np.float64)
+        try:
+            bottom = press_pose(self.scene, depth)
+        except InputError:  # a user's object that the tool misses above its target: warm up without contact
+            bottom = rest
+        for pose in self._path(rest, bottom, 0.9 * self.max_translation):
+            self.step(pose)
+        for pose in self._path(bottom, rest, min(2.0, self.max_substeps) * 0.9 * self.max_translation):
+            self.step(pose)
+        self.reset()
+        return time.monotonic() - started
+
+    @staticmethod
+    def _path(start: np.ndarray, end: np.ndarray, stride: float) -> np.ndarray:
+        """Poses [K,7] from ``start`` (excluded) to ``end`` (included), at most ``stride`` m apart."""
+        k = max(1, int(math.ceil(float(np.linalg.norm(end[:3] - start[:3])) / stride)))
+        return interpolate_poses(start, end, np.arange(1, k + 1) / k)
 
     @classmethod
     def from_checkpoint(cls, checkpoint_or_scene, *, scene=None, correction: bool = True,
@@ -608,13 +638,14 @@ class PredictorStepper:
 def warm_compile_cache(scene_names: Sequence[str], threads: int | None = None) -> dict[str, float]:
     """Compile each scene's shipped model once, so that torch's on-disk cache makes later start-ups quick.
 
-    ``make setup`` runs this for every scene, because the node compiles by default. Returns the seconds each
+    ``make setup`` runs this for every scene, because the node compiles by default; the warm-up step also fills
+    numba's on-disk cache of the collision kernels (a fresh clone has none). Returns the seconds each
     scene took (a cold cache: 10-30 s a model; a warm one: a few seconds).
     """
     seconds = {}
     for name in scene_names:
         started = time.monotonic()
-        Predictor.from_checkpoint(name, compile=True, threads=threads or auto_threads())
+        Predictor.from_checkpoint(name, compile=True, threads=threads or auto_threads(), warm_up=True)
         seconds[name] = time.monotonic() - started
     return seconds
 
