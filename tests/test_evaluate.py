@@ -55,6 +55,29 @@ def test_evaluate_reports_finite_metrics_and_writes_the_files(result):
     assert (fx.tmp_dir("evaluate") / "rmse_over_time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_surface_validity_is_checked_every_10th_frame_and_catches_a_fold(result):
+    from colgnn_core.collision.surface_validity import SurfaceValidity
+    from colgnn_core.evaluation.accuracy import SURFACE_CHECK_EVERY, surface_checks
+
+    frames = fx.FRAMES
+    expected = len(set(range(0, frames, SURFACE_CHECK_EVERY)) | {frames - 1}) * len(result["sequences"])
+    gt = result["rows"]["ground_truth"]["surface"]
+    assert gt == {"checked_frames": expected, "self_intersecting_frames": 0, "invalid_face_frames": 0}
+    for mode in ("raw", "corrected"):
+        assert result["rows"][mode]["surface"]["checked_frames"] == expected
+    md = (fx.tmp_dir("evaluate") / "metrics.md").read_text()
+    assert f"| ground truth | 0/{expected} | 0/{expected} |" in md and "| ratio |" in md
+    # a fold: one surface vertex pushed through the object to the far side flips its faces and crosses the surface
+    seq = load_sequence(sorted(fx.dataset_dir().glob("test_*.npz"))[0])
+    x = seq.object_positions[:11].copy()
+    faces = seq.object_faces
+    v = int(faces[0, 0])
+    centre = x[0].mean(0)
+    x[10, v] = centre + 1.5 * (centre - x[0, v])
+    checks = surface_checks(x, faces, SurfaceValidity(faces, x[0]))
+    assert checks == {"checked_frames": 2, "self_intersecting_frames": 1, "invalid_face_frames": 1}
+
+
 def test_rmse_matches_a_hand_computation(result):
     scene, ckpt = fx.scene(), fx.trained_checkpoint("full")
     step1 = []

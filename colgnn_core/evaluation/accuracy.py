@@ -13,6 +13,12 @@ network alone) and ``corrected`` (through the Predictor's collision-aware correc
   ground truth and of each rollout (:func:`colgnn_core.collision.metrics.sequence_metrics`, exact oracle
   unless ``exact=False``), pooled across sequences by :func:`colgnn_core.evaluation.measure.collision_aggregate`.
 
+* the relative displacement error (all vertices and the contact region) next to the two trivial baselines, over
+  all sequences and per sequence (with the ratio to ``rest + correction``);
+* the surface's validity, object alone, every SURFACE_CHECK_EVERY-th frame (and the last) of the ground truth and
+  of each rollout: frames that self-intersect (ipctk, exact) and frames with a flipped, collapsed or torn face
+  (:class:`colgnn_core.collision.surface_validity.SurfaceValidity` against the settled rest).
+
 Outputs in ``out_dir``: ``metrics.json`` (atomic), ``metrics.md`` (Markdown table), ``rmse_over_time.png``.
 """
 
@@ -24,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from colgnn_core.collision.exact import self_intersects
 from colgnn_core.collision.metrics import sequence_metrics
+from colgnn_core.collision.surface_validity import SurfaceValidity
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.provenance import provenance_line
 from colgnn_core.evaluation.measure import (collision_aggregate, contact_region, mean_std,
@@ -45,6 +53,7 @@ RELATIVE_LABELS = {"raw": "raw network", "corrected": "corrected (no caps, no re
                    "node": "corrected, node defaults (caps + rest relaxation)", "rest": "rest (nothing moves)",
                    "rest_correction": "rest + correction (no network)"}
 RMSE_STEPS = (1, 10, 50)
+SURFACE_CHECK_EVERY = 10  # frames between the object-alone validity checks (ipctk's check costs ~10-50 ms a frame)
 ROW_LABELS = {"ground_truth": "ground truth", "raw": "raw network", "corrected": "corrected"}
 
 
@@ -114,7 +123,9 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         t0 = time.perf_counter()
         m = sequence_metrics(gt, exact=exact)
         coll["ground_truth"].append(m)
-        rec["ground_truth"] = {"collisions": m["summary"], "metrics_s": time.perf_counter() - t0}
+        validity = SurfaceValidity(gt.object_faces, gt.object_positions[0])
+        rec["ground_truth"] = {"collisions": m["summary"], "metrics_s": time.perf_counter() - t0,
+                               "surface": surface_checks(gt.object_positions, gt.object_faces, validity)}
         for mode in modes:
             t0 = time.perf_counter()
             seq = rollout(loaded, gt.tool_poses, correction=(mode == "corrected"), scene=scene,
@@ -133,6 +144,7 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
             rec[mode] = {"positions": seq.object_positions, "rmse": [float(e) for e in err],
                          "rmse_all": float(err[1:].mean()) if len(err) > 1 else 0.0,
                          "collisions": m["summary"], "extra_totals": totals,
+                         "surface": surface_checks(seq.object_positions, gt.object_faces, validity),
                          "step_ms_median": stats(seq.extra["step_ms"][1:], empty=0.0)["median"],
                          "rollout_s": t_roll, "metrics_s": time.perf_counter() - t0}
         rec["relative"] = _relative_errors(loaded, scene, gt, {m: rec[m].pop("positions") for m in modes})
@@ -147,6 +159,8 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
     rows: dict = {"ground_truth": {"rmse": None, "collisions": collision_aggregate(coll["ground_truth"])}}
     for mode in modes:
         rows[mode] = {"rmse": _rmse_summary(curves[mode]), "collisions": collision_aggregate(coll[mode])}
+    for key, row in rows.items():
+        row["surface"] = {k: sum(r[key]["surface"][k] for r in per_sequence) for k in SURFACE_KEYS}
     result = {
         "scene": scene.name,
         "resolution": scene.resolution,
@@ -167,6 +181,20 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
     if command is not None:  # the report names the command that measured it, the machine and its load
         result["provenance"] = provenance_line(command)
     return write_report(result, out, "metrics", "rmse_over_time.png", format_markdown, plot_rmse)
+
+
+SURFACE_KEYS = ("checked_frames", "self_intersecting_frames", "invalid_face_frames")
+
+
+def surface_checks(positions: np.ndarray, faces: np.ndarray, validity: SurfaceValidity,
+                   every: int = SURFACE_CHECK_EVERY) -> dict[str, int]:
+    """Object-alone validity of frames 0, ``every``, 2 ``every``, ... and the last of ``positions`` [T,N,3] (m):
+    {'checked_frames', 'self_intersecting_frames' (ipctk, exact), 'invalid_face_frames' (a flipped, collapsed or
+    torn face against ``validity``'s rest)}."""
+    frames = sorted(set(range(0, len(positions), every)) | {len(positions) - 1})
+    return {"checked_frames": len(frames),
+            "self_intersecting_frames": int(sum(self_intersects(positions[t], faces) for t in frames)),
+            "invalid_face_frames": int(sum(bool(validity.invalid(positions[t]).any()) for t in frames))}
 
 
 def _relative_errors(loaded, scene, gt, positions: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
@@ -234,7 +262,39 @@ def format_markdown(result: dict) -> str:
         cells.append(f"{c['intersecting_frames']}/{c['frames']}")
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
-    return "\n".join(format_relative(result["relative"]) + [""] + lines)
+    return "\n".join(format_relative(result["relative"]) + [""] + format_relative_per_sequence(result) + [""]
+                     + lines + format_surface(result))
+
+
+def format_relative_per_sequence(result: dict) -> list[str]:
+    """Per test sequence: the corrected model's relative error next to ``rest + correction``, and their ratio (a
+    model that is done scores at most 0.5 on every sequence)."""
+    per = result.get("per_sequence") or []
+    if not per or "corrected" not in per[0]["relative"]:
+        return []
+    lines = ["Per sequence (corrected model against `rest + correction`; ratio: all vertices).", "",
+             "| sequence | frames | corrected, all | corrected, contact | rest + correction, all | "
+             "rest + correction, contact | ratio |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in per:
+        c, b = r["relative"]["corrected"], r["relative"]["rest_correction"]
+        ratio = c["all"] / b["all"] if b["all"] > 0 else float("inf")
+        lines.append(f"| {r['file']} | {r['frames']} | {c['all']:.3f} | {c['contact']:.3f} | {b['all']:.3f} | "
+                     f"{b['contact']:.3f} | {ratio:.2f} |")
+    return lines
+
+
+def format_surface(result: dict) -> list[str]:
+    """The object-alone validity table (every SURFACE_CHECK_EVERY-th frame and the last of each sequence)."""
+    rows = {k: r["surface"] for k, r in result["rows"].items() if "surface" in r}
+    if not rows:
+        return []
+    lines = ["", f"Surface validity, object alone (every {SURFACE_CHECK_EVERY}th frame and the last): frames that "
+             "intersect themselves (ipctk, exact) and frames with a flipped, collapsed or torn face.", "",
+             "| row | self-intersecting frames | frames with invalid faces |", "|---|---:|---:|"]
+    for key, s in rows.items():
+        lines.append(f"| {ROW_LABELS.get(key, key)} | {s['self_intersecting_frames']}/{s['checked_frames']} | "
+                     f"{s['invalid_face_frames']}/{s['checked_frames']} |")
+    return lines + [""]
 
 
 def format_relative(relative: dict) -> list[str]:
