@@ -134,11 +134,25 @@ def test_frontier_points_table_and_plot(tmp_path, capsys):
                  "--checkpoints", *ckpts, "--steps", "6", "--max-sequences", "1", "--threads", "1", "--quiet"]) == 0
     r = json.loads((out / "frontier.json").read_text())
     kinds = [p["kind"] for p in r["points"]]
-    assert kinds == ["raw", "corrected", "raw", "corrected", "ipc", "ipc", "ipc"]
+    assert kinds == ["raw", "corrected", "raw", "corrected", "baseline", "ipc", "ipc", "ipc"]
     for p in r["points"]:
         assert p["ms_median"] > 0 and math.isfinite(p["rmse_last"]) and p["rmse_last"] >= 0
-    data_ipc = r["points"][4]
+        assert 0 <= p["relative"] < 10 and 0 <= p["relative_contact"] < 10
+    data_ipc = r["points"][5]
     assert data_ipc["label"] == "IPC (data settings)" and data_ipc["rmse_last"] < 1e-6  # it is the reference
+    assert data_ipc["relative"] < 1e-6
+    # the baseline point is the evaluate table's `rest + correction` row on the same frames
+    base = r["points"][4]
+    from colgnn_core.evaluation.measure import relative_displacement_error
+    from colgnn_core.runtime.models import load_model, rest_baseline
+    gt = load_sequence(sorted(fx.dataset_dir().glob("test_*.npz"))[0])
+    loaded = load_model(ckpts[0])
+    seq = rollout(rest_baseline(loaded, fx.scene()), gt.tool_poses[:7], correction=True, scene=fx.scene(),
+                  initial_positions=gt.object_positions[0])
+    truth = gt.object_positions[:7]
+    assert base["label"] == "rest + correction (no network)"
+    assert base["relative"] == pytest.approx(relative_displacement_error(seq.object_positions, truth, truth[0]),
+                                             rel=1e-9)
     assert all(p["crossings"] == 0 and p["intersecting_frames"] == 0 for p in r["points"] if p["kind"] != "raw")
     assert (out / "frontier.png").stat().st_size > 10_000
     assert "| method | ms/step" in (out / "frontier.md").read_text() and "wrote" in capsys.readouterr().out

@@ -162,11 +162,21 @@ class CollisionSummary(Record):
 
 
 @dataclass
+class SurfaceCounts(Record):
+    """Object-alone validity of the checked frames (:func:`colgnn_core.evaluation.accuracy.surface_checks`)."""
+
+    checked_frames: int
+    self_intersecting_frames: int
+    invalid_face_frames: int
+
+
+@dataclass
 class Row(Record):
     """One row of Table 2 and the accuracy table (``rmse`` is None for the ground truth)."""
 
     rmse: RmseSummary | None
     collisions: CollisionSummary
+    surface: SurfaceCounts | None = field(default=None, metadata=OMIT_NONE)
 
 
 @dataclass
@@ -216,12 +226,14 @@ class FrontierPoint(Record):
     """One method on the speed/error plane (:mod:`colgnn_core.evaluation.frontier`)."""
 
     label: str
-    kind: str                 # 'raw' | 'corrected' | 'ipc'
+    kind: str                 # 'raw' | 'corrected' | 'baseline' | 'ipc'
     ms_median: float
     rmse_last: float
     rmse_last_std: float
     crossings: int
     intersecting_frames: int
+    relative: float | None = field(default=None, metadata=OMIT_NONE)          # relative error, all vertices
+    relative_contact: float | None = field(default=None, metadata=OMIT_NONE)  # the same, contact region
 
 
 @dataclass
