@@ -236,12 +236,13 @@ def test_warm_up_reaches_contact_and_leaves_no_trace(scene, ckpt):
         a, b = cold.step(pose), warm.step(pose)
         np.testing.assert_array_equal(a.positions, b.positions)
     # the warm-up's deepest pose is in contact with the rest shape: the correction's contact path ran
+    from colgnn_core.geometry.transforms import pose_path
     from colgnn_core.runtime.predictor import WARM_UP_DEPTH
     from colgnn_core.scenes.hard_cases import press_pose
     probe = Predictor.from_checkpoint(ckpt, threads=1)
     rest = np.asarray(scene.tool_rest_pose)
     bottom = press_pose(scene, WARM_UP_DEPTH)
-    res = [probe.step(p) for p in probe._path(rest, bottom, 0.9 * probe.max_translation)]
+    res = [probe.step(p) for p in pose_path(rest, bottom, 0.9 * probe.max_translation)]
     assert sum(r.collision_counts()["vertex_face_before"] + r.collision_counts()["edge_edge_before"] for r in res) > 0
 
 

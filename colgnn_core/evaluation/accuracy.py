@@ -36,7 +36,7 @@ from colgnn_core.collision.surface_validity import SurfaceValidity
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.provenance import provenance_line
 from colgnn_core.evaluation.measure import (collision_aggregate, contact_region, mean_std,
-                                            relative_displacement_error, rmse_fraction, stats, test_files)
+                                            relative_errors, rmse_fraction, stats, test_files)
 from colgnn_core.evaluation.render import save_png
 from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
 from colgnn_core.learn.data import load_checked_sequence
@@ -210,9 +210,7 @@ def _relative_errors(loaded, scene, gt, positions: dict[str, np.ndarray]) -> dic
     runs["rest_correction"] = rollout(rest_baseline(loaded, scene), gt.tool_poses, correction=True, scene=scene,
                                       initial_positions=rest).object_positions
     ids = contact_region(truth, rest)
-    return {row: {"all": relative_displacement_error(p, truth, rest),
-                  "contact": relative_displacement_error(p, truth, rest, ids)}
-            for row, p in runs.items()}
+    return {row: relative_errors(p, truth, ids) for row, p in runs.items()}
 
 
 def write_report(result: dict, out: Path, stem: str, plot_name: str, markdown, plot) -> dict:

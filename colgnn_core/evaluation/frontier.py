@@ -31,8 +31,7 @@ import torch
 from colgnn_core.collision.metrics import sequence_metrics
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.accuracy import write_report
-from colgnn_core.evaluation.measure import (collision_aggregate, contact_region, relative_displacement_error,
-                                            rmse_fraction, stats, test_files)
+from colgnn_core.evaluation.measure import collision_aggregate, relative_errors, rmse_fraction, stats, test_files
 from colgnn_core.evaluation.render import save_png
 from colgnn_core.io import ensure_writable_dir, load_sequence
 from colgnn_core.learn.data import load_checked_sequence
@@ -65,13 +64,10 @@ def _point(label: str, kind: str, seqs: list, truths: list, ms: list[float], dia
     """One frontier point from rollouts ``seqs`` against ``truths`` (Sequences) and per-step times ``ms``."""
     last = [float(rmse_fraction(s.object_positions, t.object_positions, diagonal)[-1]) for s, t in zip(seqs, truths)]
     agg = collision_aggregate([sequence_metrics(s, exact=exact) for s in seqs])
-    rel = {"all": [], "contact": []}
-    for s, t in zip(seqs, truths):
-        x, gt = s.object_positions, t.object_positions
-        rel["all"].append(relative_displacement_error(x, gt, gt[0]))
-        rel["contact"].append(relative_displacement_error(x, gt, gt[0], contact_region(gt, gt[0])))
+    rel = [relative_errors(s.object_positions, t.object_positions) for s, t in zip(seqs, truths)]
     return {"label": label, "kind": kind, "ms_median": stats(ms)["median"],
-            "relative": float(np.mean(rel["all"])), "relative_contact": float(np.mean(rel["contact"])),
+            "relative": float(np.mean([r["all"] for r in rel])),
+            "relative_contact": float(np.mean([r["contact"] for r in rel])),
             "rmse_last": float(np.mean(last)),
             "rmse_last_std": float(np.std(last)), "crossings": agg["N_vf_total"] + agg["N_ee_total"],
             "intersecting_frames": agg["intersecting_frames"]}

@@ -66,6 +66,16 @@ def relative_displacement_error(pred: np.ndarray, truth: np.ndarray, rest: np.nd
     return num / den if den > 0 else (0.0 if num == 0 else math.inf)
 
 
+def relative_errors(pred: np.ndarray, truth: np.ndarray, contact: np.ndarray | None = None) -> dict[str, float]:
+    """{'all', 'contact'}: :func:`relative_displacement_error` of ``pred`` against ``truth`` [T,N,3] from the
+    truth's frame 0, over every vertex and over ``contact`` (default :func:`contact_region` of the truth)."""
+    truth = np.asarray(truth)
+    rest = truth[0]
+    ids = contact_region(truth, rest) if contact is None else contact
+    return {"all": relative_displacement_error(pred, truth, rest),
+            "contact": relative_displacement_error(pred, truth, rest, ids)}
+
+
 def rmse_fraction(pred: np.ndarray, truth: np.ndarray, diagonal: float) -> np.ndarray:
     """Per-frame position RMSE [T] of ``pred`` vs ``truth`` [T,N,3], as a fraction of the bbox ``diagonal``."""
     return np.sqrt(((pred - truth) ** 2).sum(-1).mean(-1)) / diagonal

@@ -98,3 +98,9 @@ def interpolate_poses(a: np.ndarray, b: np.ndarray, s: np.ndarray) -> np.ndarray
         q = (np.sin((1 - s) * theta) * qa + np.sin(s * theta) * qb) / np.sin(theta)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return np.concatenate([a[:3] + s * (b[:3] - a[:3]), q], axis=1)
+
+
+def pose_path(a: np.ndarray, b: np.ndarray, stride: float) -> np.ndarray:
+    """Poses [K,7] from ``a`` (excluded) to ``b`` (included), evenly spaced, positions at most ``stride`` m apart."""
+    k = max(1, int(np.ceil(float(np.linalg.norm(b[:3] - a[:3])) / stride)))
+    return interpolate_poses(a, b, np.arange(1, k + 1) / k)

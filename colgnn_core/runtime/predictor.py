@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, CollisionCorrector
 from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
-from colgnn_core.geometry.transforms import interpolate_poses
+from colgnn_core.geometry.transforms import interpolate_poses, pose_path
 from colgnn_core.learn.core_model import EdgeSet
 from colgnn_core.learn.graph import lift_to_mesh
 from colgnn_core.learn.model import Frame
@@ -328,18 +328,12 @@ class Predictor:
             bottom = press_pose(self.scene, depth)
         except InputError:  # a user's object that the tool misses above its target: warm up without contact
             bottom = rest
-        for pose in self._path(rest, bottom, 0.9 * self.max_translation):
+        for pose in pose_path(rest, bottom, 0.9 * self.max_translation):
             self.step(pose)
-        for pose in self._path(bottom, rest, min(2.0, self.max_substeps) * 0.9 * self.max_translation):
+        for pose in pose_path(bottom, rest, min(2.0, self.max_substeps) * 0.9 * self.max_translation):
             self.step(pose)
         self.reset()
         return time.monotonic() - started
-
-    @staticmethod
-    def _path(start: np.ndarray, end: np.ndarray, stride: float) -> np.ndarray:
-        """Poses [K,7] from ``start`` (excluded) to ``end`` (included), at most ``stride`` m apart."""
-        k = max(1, int(math.ceil(float(np.linalg.norm(end[:3] - start[:3])) / stride)))
-        return interpolate_poses(start, end, np.arange(1, k + 1) / k)
 
     @classmethod
     def from_checkpoint(cls, checkpoint_or_scene, *, scene=None, correction: bool = True,
