@@ -95,8 +95,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     config = None
-    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options)):
-        config = TrainConfig()
+    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options)) or args.symmetry:
+        config = TrainConfig(symmetry=args.symmetry)
         if args.graph is not None:
             config.model = {**config.model, "surface_only": args.graph == "surface"}
         if args.ccd_form is not None:
@@ -321,6 +321,8 @@ def _add_train(sub) -> None:
                         '"coarse_nodes": 32, "coarse_steps": 3}\'')
     p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None,
                    help="reduction of L_ccd (paper: max)")
+    p.add_argument("--symmetry", action="store_true",
+                   help="turn each sample by a random rotation of the scene's declared [symmetry] (knife_torus)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="stop (with a checkpoint) after this long")
     p.add_argument("--resolution", choices=("ci", "full"), default=None, help="default: from the dataset manifest")

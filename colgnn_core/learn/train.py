@@ -46,6 +46,7 @@ from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.losses import REDUCTIONS, kl_latent, loss_ccd, loss_q, xi_random
 from colgnn_core.learn.model import ModelConfig, Simulator
 from colgnn_core.learn.subspace import train_subspace
+from colgnn_core.learn.symmetry import NodeSymmetry, node_symmetry
 from colgnn_core.learn.training_common import (GeometricDecay, TrainResult, data_stats, domain_extra,
                                               read_resumable)
 from colgnn_core.scenes import load_scene
@@ -84,6 +85,7 @@ class TrainConfig:
     ramp_begin: float = 0.1           # collision weights: 0 before this fraction of the optimisation steps ...
     ramp_end: float = 0.3             # ... full weight after this one
     clip_grad_norm: float | None = None
+    symmetry: bool = False            # turn each sample by a random symmetry of the scene (learn.symmetry)
     checkpoint_every: int = 500
     log_every: int = 25
     model: dict = field(default_factory=lambda: dict(DEFAULT_MODEL))  # overrides of the scene's [model] table
@@ -286,6 +288,7 @@ class _Run:
     opt_total: int            # optimisation steps of the run (after the warm-up)
     free: torch.Tensor        # [N] bool: graph nodes that are not pinned
     n_free: int
+    symmetry: NodeSymmetry | None = None  # cfg.symmetry: the scene's turns that each sample is augmented by
     extra: dict = field(default_factory=dict)  # saved with every checkpoint
 
     @property
@@ -313,10 +316,16 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
              "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
              "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template),
              **domain_extra(dataset, seed)}
+    symmetry = None
+    if cfg.symmetry:
+        symmetry = node_symmetry(scene, template.rest.numpy())
+        if symmetry is None:
+            raise InputError(f"{scene.name}: --symmetry needs a [symmetry] table in the scene (none declared)")
+        extra["symmetry_order"] = symmetry.order
     return _Run(scene, variant, seed, out_ckpt, dataset, dist_, model, detector, variant_weights(variant, cfg),
                 delta=float(cfg.compact_threshold if cfg.compact_threshold is not None else scene.dhat),
                 opt_total=max(cfg.steps - cfg.warmup_steps, 1), free=~template.pinned,
-                n_free=int((~template.pinned).sum()), extra=extra)
+                n_free=int((~template.pinned).sum()), symmetry=symmetry, extra=extra)
 
 
 # ---------------------------------------------------------------------------------------------------- one step
@@ -335,6 +344,9 @@ def _losses(run: _Run, step: int, log_now: bool) -> _StepLosses:
     cfg, sim, rank = run.cfg, run.sim, run.dist.rank
     frame, x_next, pose_t = run.dataset.sample(run.model.template,
                                                sample_at(step, len(run.dataset), run.seed, rank, run.dist.world))
+    if run.symmetry is not None:  # a pure function of (seed, step, rank), like the sample order; -1: not turned
+        k = int(np.random.default_rng([run.seed, step, rank, 1]).integers(-1, run.symmetry.order - 1))
+        frame, x_next, pose_t = run.symmetry.turn(frame, x_next, pose_t, k)
     gen = _step_generator(run.seed, step, rank)
     warm = step < cfg.warmup_steps
     r = 0.0 if warm else ramp(step - cfg.warmup_steps, run.opt_total, cfg.ramp_begin, cfg.ramp_end)
