@@ -9,7 +9,8 @@ setup(
     version="0.1.0",
     packages=find_packages(include=["colgnn_core", "colgnn_core.*", "colgnn_ros", "colgnn_ros.*", "msg_tools",
                                     "msg_tools.*"]),
-    package_data={"colgnn_core": ["scenes/*.toml", "assets/meshes/*", "assets/models/*", "assets/ccd/**/*"]},
+    package_data={"colgnn_core": ["scenes/*.toml", "assets/meshes/*", "assets/models/*", "assets/ccd/**/*"],
+                  "colgnn_ros": ["*.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -6,6 +6,9 @@
 - Parameters are described once as :class:`ParamSpec` rows, declared with rcl_interfaces
   descriptors (ranges, read-only, a description each) by :func:`declare_parameters`, and the same
   rows print the ``--help`` text. A bad value raises :class:`colgnn_core.errors.InputError`.
+- Transport: :func:`run_node` points Fast DDS at :data:`FASTDDS_PROFILE` (shared memory that holds a
+  whole mesh Marker, plus UDP) unless the user chose a profile file or another RMW; see
+  :func:`use_large_data_transport`.
 - :func:`run_node` is the ``main`` of a node process: it initialises rclpy, builds the node, spins
   it until the node reports it is done or SIGINT/SIGTERM arrives, and returns the exit code
   (0 = finished or stopped by a signal, 2 = bad parameters, with one error line naming the problem).
@@ -26,10 +29,12 @@ default way.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, MutableMapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
@@ -159,6 +164,28 @@ SPIN_WAIT_S = 0.1
 """Longest executor wait (s): how long a signal may wait for the main thread to run Python again."""
 
 
+#: The Fast DDS profile of the node processes (the file's comment gives the measurement behind it).
+FASTDDS_PROFILE = Path(__file__).with_name("fastdds_large_data.xml")
+#: Environment variables by which Fast DDS (2.x, 3.x) reads a profile file; a user's choice wins.
+FASTDDS_PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+def use_large_data_transport(environ: MutableMapping[str, str] = os.environ) -> str | None:
+    """Make this process's Fast DDS participant publish mesh-sized messages in one piece; call before rclpy.init.
+
+    Sets FASTRTPS_DEFAULT_PROFILES_FILE to :data:`FASTDDS_PROFILE` and returns that path, unless the user set a
+    profile file (either variable) or an RMW other than Fast DDS (``RMW_IMPLEMENTATION``): then returns None and
+    changes nothing. The profile keeps UDP, so subscribers on other machines still receive.
+    """
+    rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    if rmw not in ("rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp"):
+        return None
+    if any(environ.get(v) for v in FASTDDS_PROFILE_VARIABLES):
+        return None
+    environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
+    return str(FASTDDS_PROFILE)
+
+
 class ShutdownRequested(BaseException):
     """SIGINT or SIGTERM asked the node process to stop (raised by :func:`run_node`'s handler).
 
@@ -208,12 +235,15 @@ def run_node(make_node: Callable[[], Node], *, prog: str, summary: str, specs: S
         logger.error(f"unexpected argument(s) {' '.join(extra)}; set parameters with --ros-args -p NAME:=VALUE "
                      f"(see {prog} --help)")
         return EXIT_BAD_INPUT
+    profile = use_large_data_transport()
     # The default context, with our handlers instead of rclpy's (see the module docstring).
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     previous = {sig: signal.signal(sig, _request_shutdown) for sig in (signal.SIGINT, signal.SIGTERM)}
     node: Node | None = None
     try:
         node = make_node()
+        if profile is not None:
+            node.get_logger().debug(f"Fast DDS profile {profile}")
         spin(node, getattr(node, "done", None))
         return EXIT_OK
     except InputError as exc:

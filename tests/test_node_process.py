@@ -103,3 +103,38 @@ def test_a_signal_while_the_node_is_built_ends_the_process_with_0():
         out = finish(proc)
     assert proc.returncode == 0, out
     assert "exit 0, context ok False" in out and "ready" not in out and "Traceback" not in out, out
+
+
+# -- the transport profile run_node sets -------------------------------------------------------------------------
+def test_nodes_publish_with_the_large_data_profile_unless_the_user_chose_one():
+    from colgnn_ros.common import FASTDDS_PROFILE, use_large_data_transport
+
+    env: dict[str, str] = {}
+    assert use_large_data_transport(env) == str(FASTDDS_PROFILE)
+    assert env == {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FASTDDS_PROFILE)} and FASTDDS_PROFILE.is_file()
+    for mine in ({"FASTRTPS_DEFAULT_PROFILES_FILE": "/my/profile.xml"}, {"FASTDDS_DEFAULT_PROFILES_FILE": "/p.xml"},
+                 {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}):
+        env = dict(mine)
+        assert use_large_data_transport(env) is None and env == mine
+
+
+def test_the_profile_holds_the_largest_mesh_marker_in_one_piece_and_keeps_udp():
+    import xml.etree.ElementTree as ET
+
+    from colgnn_core.scenes import load_scene
+    from colgnn_ros.common import FASTDDS_PROFILE
+
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.parse(FASTDDS_PROFILE).getroot()
+    kinds = {d.findtext("f:transport_id", namespaces=ns): d for d in root.iterfind(".//f:transport_descriptor", ns)}
+    shm = next(d for d in kinds.values() if d.findtext("f:type", namespaces=ns) == "SHM")
+    assert any(d.findtext("f:type", namespaces=ns) == "UDPv4" for d in kinds.values())
+    participant = root.find(".//f:participant", ns)
+    assert participant.get("is_default_profile") == "true"
+    assert participant.findtext(".//f:useBuiltinTransports", namespaces=ns) == "false"
+    assert {t.text for t in participant.iterfind(".//f:userTransports/f:transport_id", ns)} == set(kinds)
+    # A coloured TRIANGLE_LIST: 24 bytes a corner for the point, 16 for the colour, 3 corners a face.
+    scenes = ("cone_bunny", "knife_torus", "sphere_mat", "cylinder_banana")
+    largest = max(len(load_scene(name, "full").object.faces) * 3 * 40 for name in scenes)
+    assert int(shm.findtext("f:maxMessageSize", namespaces=ns)) >= 2 * largest
+    assert int(shm.findtext("f:segment_size", namespaces=ns)) >= 8 * largest  # several messages in flight

@@ -110,7 +110,7 @@ def test_colcon_installs_executables_index_and_package_data(colcon_install):
     assert (inst / "share/ament_index/resource_index/packages" / PKG).is_file()
     assert (inst / "share" / PKG / "package.xml").read_bytes() == (REPO / "package.xml").read_bytes()
     site = inst / PY_DIR
-    for pattern in ("colgnn_core/scenes/*.toml", "colgnn_core/assets/meshes/*"):
+    for pattern in ("colgnn_core/scenes/*.toml", "colgnn_core/assets/meshes/*", "colgnn_ros/*.xml"):
         installed = {p.relative_to(site) for p in site.glob(pattern)}
         source = {p.relative_to(REPO) for p in REPO.glob(pattern) if p.is_file()}
         assert source and installed == source, pattern
