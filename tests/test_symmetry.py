@@ -39,6 +39,13 @@ def test_the_ring_declares_one_turn_per_segment_and_each_is_a_node_permutation(r
         assert np.array_equal(pinned[perm], pinned)  # the glued band turns into itself
 
 
+def test_the_square_mat_declares_its_quarter_turns():
+    scene = load_scene("sphere_mat", "ci")
+    template = template_from_scene(scene, surface_only=True, world_radius=0.01)
+    sym = node_symmetry(scene, template.rest.numpy())
+    assert sym.order == 4 and np.allclose(sym.angles, [math.pi / 2, math.pi, 3 * math.pi / 2])
+
+
 def test_a_turned_pose_and_its_turned_tool_vertices_agree(ring):
     scene, template, sym = ring
     pose = press_pose(scene, 0.3)
