@@ -86,6 +86,19 @@ def test_turning_a_simulated_press_equals_simulating_the_turned_press(ring):
     assert motion > 0.01  # the press really dents the ring (m)
 
 
+def test_the_training_domain_holds_every_turn_of_the_tool_positions(ring):
+    from colgnn_core.learn.data import FrameDataset
+    from colgnn_core.learn.training_common import DOMAIN_POSES, domain_extra
+
+    _, _, sym = ring
+    data = FrameDataset(fx.scene(), fx.dataset_dir())  # any dataset: only its tool positions are turned here
+    plain = domain_extra(data, 0)["domain_tool_positions"].numpy().astype(np.float64)
+    turned = domain_extra(data, 0, sym)["domain_tool_positions"].numpy().astype(np.float64)
+    assert len(plain) * sym.order <= DOMAIN_POSES and len(turned) == len(plain) * sym.order
+    for p in plain[:3]:  # half a turn away, at the same height and radius
+        assert np.linalg.norm(turned - sym.turn_points(p[None], math.pi)[0], axis=1).min() < 1e-6
+
+
 def test_a_scene_without_the_symmetry_it_declares_is_refused():
     scene = load_scene("cone_bunny", "ci")
     template = template_from_scene(scene, surface_only=True, world_radius=0.01)

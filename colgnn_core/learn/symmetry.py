@@ -75,10 +75,14 @@ class NodeSymmetry:
                        None if frame.pose_next is None else self.turn_pose(frame.pose_next, angle))
         return turned, nodes(x_next), self.turn_pose(pose_t, angle)
 
+    def turn_points(self, points: np.ndarray, angle: float) -> np.ndarray:
+        """Points [K,3] (m) turned by ``angle`` (rad) about the axis."""
+        return (np.asarray(points, dtype=np.float64) - self.center) @ _rotation_z(angle).T + self.center
+
     def turn_pose(self, pose: np.ndarray, angle: float) -> np.ndarray:
         """A tool pose [7] (position m, quaternion xyzw) turned by ``angle`` (rad) about the axis."""
         pose = np.asarray(pose, dtype=np.float64)
-        p = _rotation_z(angle) @ (pose[:3] - self.center) + self.center
+        p = self.turn_points(pose[None, :3], angle)[0]
         q = quat_multiply(axis_angle_quat(np.array([0.0, 0.0, 1.0]), angle), pose[3:])
         return np.concatenate([p, q])
 

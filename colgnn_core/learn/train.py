@@ -312,15 +312,16 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
     # Crossings are also counted (without gradient) at logging steps of the baseline, for comparison.
     detector = CollisionDetector(template.surface_faces, scene.tool.faces, template.num_object_nodes,
                                  template.num_tool_nodes, tool=scene.tool)
-    extra = {"train_config": cfg.to_dict(), "seed": int(seed), "data_dir": str(data_dir),
-             "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
-             "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template),
-             **domain_extra(dataset, seed)}
     symmetry = None
     if cfg.symmetry:
         symmetry = node_symmetry(scene, template.rest.numpy())
         if symmetry is None:
             raise InputError(f"{scene.name}: --symmetry needs a [symmetry] table in the scene (none declared)")
+    extra = {"train_config": cfg.to_dict(), "seed": int(seed), "data_dir": str(data_dir),
+             "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
+             "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template),
+             **domain_extra(dataset, seed, symmetry)}
+    if symmetry is not None:
         extra["symmetry_order"] = symmetry.order
     return _Run(scene, variant, seed, out_ckpt, dataset, dist_, model, detector, variant_weights(variant, cfg),
                 delta=float(cfg.compact_threshold if cfg.compact_threshold is not None else scene.dhat),

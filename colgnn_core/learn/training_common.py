@@ -19,6 +19,7 @@ import torch
 from colgnn_core.errors import InputError
 from colgnn_core.learn.checkpoint import CheckpointMeta, check_compatible, read_checkpoint
 from colgnn_core.learn.data import FrameDataset
+from colgnn_core.learn.symmetry import NodeSymmetry
 
 
 class GeometricDecay:
@@ -50,17 +51,19 @@ class TrainResult:
 DOMAIN_POSES = 4096  # training tool positions a checkpoint keeps for the Predictor's domain check (subsampled)
 
 
-def domain_extra(dataset: FrameDataset, seed: int = 0) -> dict:
+def domain_extra(dataset: FrameDataset, seed: int = 0, symmetry: NodeSymmetry | None = None) -> dict:
     """What the runtime needs to know of the training data, for a checkpoint's ``extra``.
 
     ``settled_rest`` [N_mesh,3] float64: frame 0 of the first training sequence, the rest shape the ground truth
     settles to under gravity before any tool moves (the Predictor starts from it and relaxes toward it);
     ``domain_tool_positions`` [K,3] float32: the tool positions of the training frames (at most DOMAIN_POSES, a
     seeded subsample); ``domain_max_deviation`` (m): the largest distance of a mesh vertex from the settled rest
-    in the training data.
+    in the training data. With ``symmetry`` (training turned the samples) the tool positions include every turn.
     """
     rest = np.asarray(dataset.sequences[0].object_positions[0], dtype=np.float64)
     poses = np.concatenate([s.tool_poses[:, :3] for s in dataset.sequences])
+    if symmetry is not None:
+        poses = np.concatenate([poses] + [symmetry.turn_points(poses, a) for a in symmetry.angles])
     if len(poses) > DOMAIN_POSES:
         poses = poses[np.random.default_rng(seed).choice(len(poses), DOMAIN_POSES, replace=False)]
     deviation = max(float(np.linalg.norm(s.object_positions - rest, axis=2).max()) for s in dataset.sequences)
