@@ -49,7 +49,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import validate_pose
 from colgnn_core.runtime.models import shipped_checkpoint
-from colgnn_core.runtime.predictor import Predictor, auto_threads
+from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor, auto_threads
 from colgnn_core.scenes import scene_names
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS, ParamSpec, declare_parameters, run_node
 from msg_tools.conversions import (COLLISION_COUNT_LABELS, NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array,
@@ -179,7 +179,8 @@ class PredictorNode(Node):
         pred = Predictor.from_checkpoint(path, correction=p["correction"], max_substeps=p["max_substeps"],
                                          threads=p["threads"] or auto_threads(), compile=p["compile"],
                                          limits=p["limits"], self_contact=p["self_contact"],
-                                         rest_relaxation=p["rest_relaxation"], warm_up=True)
+                                         rest_relaxation=p["rest_relaxation"], warm_up=True,
+                                         interior=REALTIME_INTERIOR)  # only the surface is published
         if pred.scene.name != p["scene"]:
             raise InputError(f"parameter 'checkpoint': {path} is a {pred.scene.name!r} model, not {p['scene']!r} "
                              f"(set scene:={pred.scene.name})")

@@ -47,7 +47,7 @@ from colgnn_core.evaluation.speed import timed_rollout
 from colgnn_core.evaluation.stability import check_rollout, hard_cases
 from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
 from colgnn_core.runtime.models import MODEL_DIR, load_model
-from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION, Predictor
+from colgnn_core.runtime.predictor import REALTIME_INTERIOR, RECOMMENDED_REST_RELAXATION, Predictor
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import load_scene, scene_names
 from colgnn_core.sim.dataset import generate_dataset, simulate_sequence
@@ -88,7 +88,7 @@ def speed(loaded, scene, data_dir: Path, threads: int, compile: bool) -> SpeedRo
     the other in this run, so that both see the same machine (the data's own solver times may come from a
     shared machine)."""
     first = load_sequence(test_files(data_dir, scene)[0])
-    pred = Predictor(loaded, scene, correction=True, threads=threads, compile=compile)
+    pred = Predictor(loaded, scene, correction=True, threads=threads, compile=compile, interior=REALTIME_INTERIOR)
     timed = timed_rollout(pred, first.tool_poses, first.object_positions[0])
     load = os.getloadavg()[0]
     st = timed["stages"]

@@ -16,7 +16,7 @@ import torch
 
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import family_poses, relative_displacement_error, rmse_fraction, stats
-from colgnn_core.runtime.predictor import Predictor
+from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor
 from colgnn_core.scenes import scene_names
 from colgnn_core.sim.dataset import simulate_sequence
 
@@ -64,7 +64,7 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
     if frames < 3:
         raise InputError(f"frames must be >= 3, got {frames}")
     predictor = Predictor.from_checkpoint(checkpoint or scene_name, correction=correction, threads=threads,
-                                          compile=compile, self_contact=self_contact)
+                                          compile=compile, self_contact=self_contact, interior=REALTIME_INTERIOR)
     scene = predictor.scene
     if scene.name != scene_name:
         raise InputError(f"checkpoint is for scene {scene.name!r}, not {scene_name!r}")

@@ -26,8 +26,8 @@ goes through the same correction, clearance included, and its output is the new 
 
 The correction works on the object graph nodes' surface (surface-only models: all
 graph nodes; full-mesh models: the surface subset); interior mesh vertices are
-lifted from the corrected nodes (``lift_to_mesh``), so the published mesh is the
-corrected one.
+lifted from the corrected nodes (``interior``: the elastic extension by default, the free interpolation in the
+node; :mod:`colgnn_core.runtime.interior`), so the published mesh is the corrected one.
 """
 
 from __future__ import annotations
@@ -50,7 +50,6 @@ from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses, pose_path
 from colgnn_core.learn.core_model import EdgeSet
-from colgnn_core.learn.graph import lift_to_mesh
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.stepper import RawStepper
@@ -77,6 +76,9 @@ TRIM_EVERY = 200           # model steps between returns of freed heap memory to
 # when the object is farther from its settled rest than DOMAIN_DEVIATION_FACTOR x the training data's largest
 # deviation. The output is still published (and corrected): the flag tells the user not to trust its shape.
 DOMAIN_RADIUS_FACTOR = 2.0
+# How the interior vertices follow the surface where only the surface is used (the node publishes the surface; the
+# speed benchmarks time the node's configuration): the free interpolation, not the elastic solve (runtime.interior).
+REALTIME_INTERIOR = "interpolated"
 DOMAIN_DEVIATION_FACTOR = 1.25
 COUNT_LABELS = ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
                 "penetrating_vertices_after", "correction_iterations", "fallback", "substeps",
@@ -241,6 +243,10 @@ class Predictor:
             ``SETTLE_RAMP_STEPS`` (a distorted network state can hold a deformation against a constant small
             rate: x* - rest = network acceleration / a). 0 (default): off. GNN models only; applied before
             the correction, so the guarantee is unchanged.
+        interior: how a surface-only model's interior vertices follow its surface nodes (``positions``):
+            'elastic' (default; the linear-elastic extension, a back-substitution per step: ~3.6 ms at full
+            resolution) or 'interpolated' (inverse-distance weights, free; the node's choice, as it publishes
+            the surface only). See :mod:`colgnn_core.runtime.interior`.
         warm_up: before returning, step into contact at the scene's target and back, then reset
             (:meth:`warm_up`): the first real pose then meets no lazy compilation (numba's kernels on a fresh
             clone, torch's specialisations). The node does this; a fresh clone's first start takes ~25 s longer.
@@ -254,7 +260,7 @@ class Predictor:
                  threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
                  max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0,
-                 self_contact: bool = False, warm_up: bool = False):
+                 self_contact: bool = False, warm_up: bool = False, interior: str = "elastic"):
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
         if not 0.0 <= rest_relaxation < 1.0:
@@ -280,7 +286,7 @@ class Predictor:
         # One rest state: the settled shape the ground truth starts from (start, relaxation and caps refer to it).
         self.rest_mesh = settled_rest(loaded, scene)
         self.net = RawStepper(self.model, scene, max_displacement, max_deviation,  # the network step and its state
-                              rest_mesh=self.rest_mesh)
+                              rest_mesh=self.rest_mesh, interior=interior)
         extra = loaded.extra or {}
         poses = extra.get("domain_tool_positions")
         self._domain_tree = cKDTree(np.asarray(poses, dtype=np.float64)) if poses is not None else None
@@ -573,9 +579,9 @@ class Predictor:
         return self.rest_relaxation + (1.0 - self.rest_relaxation) * ramp
 
     def lift(self, x_graph: np.ndarray, res: StepResult | None = None) -> np.ndarray:
-        """Graph-node positions [N,3] -> every mesh vertex [N_mesh,3] (:func:`lift_to_mesh`); with the correction,
+        """Graph-node positions [N,3] -> every mesh vertex [N_mesh,3] (the ``interior`` lift); with the correction,
         interior vertices inside the tool at the current pose are moved out (counted in ``res.interior_cleared``)."""
-        mesh = lift_to_mesh(self.template, x_graph, self.rest_mesh)
+        mesh = self.net.mesh(x_graph)
         ids = self.template.interior_ids
         if self.corrector is not None and ids is not None:
             inner = mesh[ids]
@@ -604,7 +610,7 @@ class PredictorStepper:
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
         p = self.predictor
         # Interior vertices of a surface-only model are not state: lift them from the nodes.
-        p.reset(lift_to_mesh(p.template, np.asarray(x0_graph, dtype=np.float64), p.rest_mesh), pose0)
+        p.reset(p.net.mesh(np.asarray(x0_graph, dtype=np.float64)), pose0)
         self.records = []
 
     def step(self, pose_next: np.ndarray) -> np.ndarray:
@@ -639,7 +645,8 @@ def warm_compile_cache(scene_names: Sequence[str], threads: int | None = None) -
     seconds = {}
     for name in scene_names:
         started = time.monotonic()
-        Predictor.from_checkpoint(name, compile=True, threads=threads or auto_threads(), warm_up=True)
+        Predictor.from_checkpoint(name, compile=True, threads=threads or auto_threads(), warm_up=True,
+                                  interior=REALTIME_INTERIOR)
         seconds[name] = time.monotonic() - started
     return seconds
 

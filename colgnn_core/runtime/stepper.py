@@ -23,7 +23,7 @@ import torch
 
 from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
-from colgnn_core.learn.graph import lift_to_mesh
+from colgnn_core.runtime.interior import INTERIOR_KINDS, interior_lift
 from colgnn_core.learn.model import Frame
 
 
@@ -65,7 +65,7 @@ class RawStepper:
     """The network alone: x_{t+1} = model(x_t, x_{t-1}, tool at t and t+1), optionally displacement-capped."""
 
     def __init__(self, model, scene, max_displacement: float | None = None, max_deviation: float | None = None,
-                 rest_mesh: np.ndarray | None = None):
+                 rest_mesh: np.ndarray | None = None, interior: str = "elastic"):
         for name, v in (("max_displacement", max_displacement), ("max_deviation", max_deviation)):
             if v is not None and not v > 0:
                 raise InputError(f"{name} must be > 0 (m), got {v}")
@@ -80,6 +80,10 @@ class RawStepper:
         self.rest_mesh = np.asarray(self.template.mesh_rest_vertices if rest_mesh is None else rest_mesh,
                                     dtype=np.float64).copy()
         self.rest = torch.from_numpy(self.rest_mesh[self.template.object_nodes])
+        if interior not in INTERIOR_KINDS:
+            raise InputError(f"interior must be one of {', '.join(INTERIOR_KINDS)}, got {interior!r}")
+        self.interior = interior   # how the mesh's interior vertices follow the graph nodes (runtime.interior)
+        self._lift = None          # built on first use (the elastic one factorises a matrix: seconds at full)
         self.clamped = 0  # nodes capped in the last step
         self.state: StepperState | None = None
 
@@ -143,8 +147,20 @@ class RawStepper:
         return x_next.numpy()
 
     def mesh(self, x_graph: np.ndarray) -> np.ndarray:
-        """Every mesh vertex [N_mesh,3] from the graph nodes [N,3] (:func:`lift_to_mesh`)."""
-        return lift_to_mesh(self.template, x_graph, self.rest_mesh)
+        """Every mesh vertex [N_mesh,3] from the graph nodes [N,3] (:func:`colgnn_core.runtime.interior.interior_lift`
+        of ``self.interior``; interior vertices within ``max_deviation`` of the rest, like the nodes)."""
+        if self._lift is None:
+            self._lift = interior_lift(self.interior, self.scene, self.template, self.rest_mesh)
+        mesh = self._lift(x_graph)
+        ids = self.template.interior_ids
+        if self.max_deviation is not None and ids is not None:
+            # The nodes are capped already; the elastic extension of a wild surface can overshoot it inside.
+            d = mesh[ids] - self.rest_mesh[ids]
+            n = np.linalg.norm(d, axis=1, keepdims=True)
+            over = n[:, 0] > self.max_deviation
+            if over.any():
+                mesh[ids[over]] = self.rest_mesh[ids[over]] + d[over] * (self.max_deviation / n[over])
+        return mesh
 
 
 def run_stepper(stepper: Stepper, scene, poses: np.ndarray, initial_positions: np.ndarray | None = None,
