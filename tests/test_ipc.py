@@ -176,3 +176,29 @@ def test_ground_friction_gradient_matches_finite_differences():
             fd = (sim._ground_friction(xp, lam, 0)[0] - sim._ground_friction(xm, lam, 0)[0]) / (2 * h)
             assert fd == pytest.approx(g[n, d], rel=1e-4, abs=1e-12)
         assert np.all(np.linalg.eigvalsh(hess) >= -1e-12)
+
+
+def test_pcg_solves_the_newton_system_like_a_factorisation_or_hands_it_over():
+    """The Newton system's solver: CG (Jacobi) to PCG_RTOL on an SPD system like the simulator's (mass-dominated
+    diagonal plus a stiff coupled block); None where CG cannot (a non-positive diagonal, or too few iterations), so
+    that the simulator falls back to its Cholesky factorisation."""
+    import scipy.sparse as sp
+
+    from colgnn_core.sim import ipc
+
+    rng = np.random.default_rng(0)
+    n = 300
+    a = sp.random(n, n, density=0.02, random_state=1)
+    h = (a @ a.T * 50.0 + sp.eye(n) * 2.0).tocsr()  # SPD, far from diagonal
+    r = rng.normal(size=n)
+    x = ipc.pcg_solve(h, r)
+    assert x is not None
+    np.testing.assert_allclose(x, np.linalg.solve(h.toarray(), r), rtol=0, atol=1e-6 * np.abs(x).max())
+    assert np.array_equal(ipc.pcg_solve(h, np.zeros(n)), np.zeros(n))
+    assert ipc.pcg_solve(h - sp.eye(n) * 10.0, r) is None  # a non-positive diagonal entry: not for CG
+    old = ipc.PCG_MAX_ITERATIONS
+    try:
+        ipc.PCG_MAX_ITERATIONS = 2
+        assert ipc.pcg_solve(h, r) is None  # not converged: the factorisation takes over
+    finally:
+        ipc.PCG_MAX_ITERATIONS = old

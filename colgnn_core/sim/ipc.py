@@ -33,6 +33,11 @@ contact) and by a tet-inversion guard, then halved until the energy decreases.
 * κ: ``ipctk.initial_barrier_stiffness`` at every step (kept if the previous step's κ
   is larger), then ``ipctk.update_barrier_stiffness`` after every Newton iteration.
 * Stop when ‖p‖_∞ < newton_tol · bbox_diagonal · h (IPC's rule).
+* The Newton system is solved by conjugate gradients with a Jacobi preconditioner to a relative residual of
+  PCG_RTOL, and by a sparse Cholesky factorisation (cholespy) when that does not converge within PCG_MAX_ITERATIONS.
+  The mass term M/h² makes the projected Hessian strongly diagonal: on full-resolution knife_torus steps CG needs
+  ~200 iterations (0.2 s) where the factorisation took 1.4 s, 64% of a step. The converged state is the same to the
+  Newton tolerance: only the search directions differ (relative 1e-5).
 
 **Driving the kinematic tool.** The tool's surface vertices are extra degrees of
 freedom. Phase 1 pulls them towards their targets with a stiff mass-weighted quadratic
@@ -80,6 +85,9 @@ try:  # CHOLMOD-based; about 2x faster than scipy's SuperLU here
     _HAVE_CHOLESPY = True
 except ImportError:  # pragma: no cover - cholespy is in requirements
     _HAVE_CHOLESPY = False
+
+PCG_RTOL = 1e-9            # CG stops at ||H p - r|| <= PCG_RTOL ||r||
+PCG_MAX_ITERATIONS = 1000  # then the Cholesky factorisation solves it instead
 
 _DEBUG = bool(os.environ.get("COLGNN_SIM_DEBUG"))  # print every Newton iteration (developer aid)
 _SETTLE_CACHE: dict = {}  # settled frame-0 object positions per (scene, mesh, tool pose, solver options)
@@ -133,6 +141,18 @@ class StepStats:
     # (object [N,3], tool [M,3]) of the intermediate states the frame's motion passes through when its straight
     # frame-to-frame motion is not collision-free (see IPCSimulator.step); empty when it is.
     path: tuple = ()
+
+
+def pcg_solve(h: sp.spmatrix, r: np.ndarray) -> np.ndarray | None:
+    """Solve the SPD system h x = r by Jacobi-preconditioned conjugate gradients; None when CG does not reach
+    PCG_RTOL within PCG_MAX_ITERATIONS (or the diagonal is not positive): the caller factorises instead."""
+    import scipy.sparse.linalg as spla  # lazy: scipy's solvers are only needed by the simulator
+
+    d = h.diagonal()
+    if not np.all(d > 0) or not np.any(r):
+        return np.zeros_like(r) if not np.any(r) and np.all(d > 0) else None
+    x, info = spla.cg(h, r, rtol=PCG_RTOL, maxiter=PCG_MAX_ITERATIONS, M=sp.diags(1.0 / d))
+    return x if info == 0 and np.all(np.isfinite(x)) else None
 
 
 class IPCSimulator:
@@ -510,6 +530,10 @@ class IPCSimulator:
             hf = h[idx][:, idx]
         p = np.zeros_like(rhs)
         r = np.ascontiguousarray(rhs[idx])
+        out = pcg_solve(hf, r)
+        if out is not None:
+            p[idx] = out
+            return p
         if _HAVE_CHOLESPY:
             hf = hf.tocsr()
             hf.sum_duplicates()
