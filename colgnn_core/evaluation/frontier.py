@@ -143,9 +143,10 @@ def frontier(scene_name: str, checkpoints: list, data_dir, out_dir="out/frontier
                       flush=True)
     seqs, ms = [], []
     for t in truths:  # the trivial baseline every model must beat (the first checkpoint's graph and rest state)
-        s = rollout(rest_baseline(models[0], scene), t.tool_poses, correction=True, scene=scene,
-                    initial_positions=t.object_positions[0])
-        seqs.append(s)
+        base = rest_baseline(models[0], scene)
+        s = rollout(base, t.tool_poses, correction=True, scene=scene, initial_positions=t.object_positions[0],
+                    predictor_options={"interior": REALTIME_INTERIOR})
+        seqs.append(dataclasses.replace(s, object_positions=elastic_interior(s.object_positions, base, scene)))
         ms.extend(s.extra["step_ms"][1:].tolist())
     points.append(_point("rest + correction (no network)", "baseline", seqs, truths, ms, diagonal, exact))
     if ipc:
