@@ -197,6 +197,8 @@ def test_model_cards_of_the_shipped_models_and_the_readme_table_match_the_files(
     assert qs.options == {"order": 0, "coarse_nodes": 32, "coarse_steps": 3, "quasi_static": True}
     assert qs.command.endswith("--model 64/4/2 --model-options "
                                "'{\"order\": 0, \"coarse_nodes\": 32, \"coarse_steps\": 3, \"quasi_static\": true}'")
+    assert cards["experiments/knife_torus_full_quasi_static_16-2-1_sym10.pt"].command.endswith(" --symmetry")
+    assert not qs.command.endswith(" --symmetry")
     assert cards["sphere_mat_subspace.pt"].size.startswith("PCA ") and "--model" not in \
         cards["sphere_mat_subspace.pt"].command
     readme = (MODEL_DIR / "README.md").read_text()

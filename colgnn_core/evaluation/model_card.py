@@ -59,6 +59,8 @@ def read_card(path: Path, root: Path) -> ModelCard:
         size = "/".join(str(config[k]) for k in SIZE_KEYS)
         options = {k: v for k, v in config.items() if k not in NOT_OPTIONS and v != defaults.get(k)}
         command = f"{base} --model {size}" + (f" --model-options '{json.dumps(options)}'" if options else "")
+        if extra.get("symmetry_order"):  # trained with the scene's symmetry turns (learn.symmetry)
+            command += " --symmetry"
     files = extra.get("data_files")
     return ModelCard(file=str(path.relative_to(root)), kind=kind, scene=meta["scene"],
                      resolution=meta.get("resolution", "?"), variant=meta["variant"], size=size, options=options,
