@@ -30,7 +30,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.learn.graph import GraphTemplate, lift_to_mesh
 from colgnn_core.sim.elasticity import StableNeoHookean
 
-__all__ = ["INTERIOR_KINDS", "ElasticInterior", "interior_lift"]
+__all__ = ["INTERIOR_KINDS", "ElasticInterior", "check_interior_kind", "interior_lift"]
 
 INTERIOR_KINDS = ("elastic", "interpolated")
 _CACHE: OrderedDict[str, ElasticInterior] = OrderedDict()
@@ -96,12 +96,18 @@ def _factorise(h: sp.csr_matrix) -> Callable[[np.ndarray], np.ndarray]:
         return splu(h.tocsc()).solve
 
 
+def check_interior_kind(kind: str) -> str:
+    """``kind`` if it is one of INTERIOR_KINDS, else InputError."""
+    if kind not in INTERIOR_KINDS:
+        raise InputError(f"interior must be one of {', '.join(INTERIOR_KINDS)}, got {kind!r}")
+    return kind
+
+
 def interior_lift(kind: str, scene, template: GraphTemplate, rest_mesh: np.ndarray
                   ) -> Callable[[np.ndarray], np.ndarray]:
     """The lift graph nodes [N,3] -> mesh vertices [N_mesh,3] of ``kind`` (INTERIOR_KINDS); a model with every mesh
     vertex in its graph needs none (a reorder, whatever ``kind``). Elastic lifts are cached per scene and rest."""
-    if kind not in INTERIOR_KINDS:
-        raise InputError(f"interior must be one of {', '.join(INTERIOR_KINDS)}, got {kind!r}")
+    check_interior_kind(kind)
     rest = np.asarray(rest_mesh, dtype=np.float64)
     if kind == "interpolated" or template.interior_ids is None:
         return lambda x_graph: lift_to_mesh(template, x_graph, rest)

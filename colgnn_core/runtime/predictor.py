@@ -76,10 +76,10 @@ TRIM_EVERY = 200           # model steps between returns of freed heap memory to
 # when the object is farther from its settled rest than DOMAIN_DEVIATION_FACTOR x the training data's largest
 # deviation. The output is still published (and corrected): the flag tells the user not to trust its shape.
 DOMAIN_RADIUS_FACTOR = 2.0
+DOMAIN_DEVIATION_FACTOR = 1.25
 # How the interior vertices follow the surface where only the surface is used (the node publishes the surface; the
 # speed benchmarks time the node's configuration): the free interpolation, not the elastic solve (runtime.interior).
 REALTIME_INTERIOR = "interpolated"
-DOMAIN_DEVIATION_FACTOR = 1.25
 COUNT_LABELS = ("vertex_face_before", "edge_edge_before", "vertex_face_after", "edge_edge_after",
                 "penetrating_vertices_after", "correction_iterations", "fallback", "substeps",
                 "self_pairs_before", "self_pairs_after", "invalid_faces_before", "invalid_faces_after",

@@ -23,8 +23,8 @@ import torch
 
 from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
-from colgnn_core.runtime.interior import INTERIOR_KINDS, interior_lift
 from colgnn_core.learn.model import Frame
+from colgnn_core.runtime.interior import check_interior_kind, interior_lift
 
 
 class Stepper(Protocol):
@@ -80,9 +80,8 @@ class RawStepper:
         self.rest_mesh = np.asarray(self.template.mesh_rest_vertices if rest_mesh is None else rest_mesh,
                                     dtype=np.float64).copy()
         self.rest = torch.from_numpy(self.rest_mesh[self.template.object_nodes])
-        if interior not in INTERIOR_KINDS:
-            raise InputError(f"interior must be one of {', '.join(INTERIOR_KINDS)}, got {interior!r}")
-        self.interior = interior   # how the mesh's interior vertices follow the graph nodes (runtime.interior)
+        # How the mesh's interior vertices follow the graph nodes (runtime.interior).
+        self.interior = check_interior_kind(interior)
         self._lift = None          # built on first use (the elastic one factorises a matrix: seconds at full)
         self.clamped = 0  # nodes capped in the last step
         self.state: StepperState | None = None
@@ -153,8 +152,9 @@ class RawStepper:
             self._lift = interior_lift(self.interior, self.scene, self.template, self.rest_mesh)
         mesh = self._lift(x_graph)
         ids = self.template.interior_ids
-        if self.max_deviation is not None and ids is not None:
-            # The nodes are capped already; the elastic extension of a wild surface can overshoot it inside.
+        if self.max_deviation is not None and ids is not None and self.interior == "elastic":
+            # The nodes are capped already, and so is any interpolation of them; the elastic extension of a wild
+            # surface can overshoot the cap inside.
             d = mesh[ids] - self.rest_mesh[ids]
             n = np.linalg.norm(d, axis=1, keepdims=True)
             over = n[:, 0] > self.max_deviation
