@@ -208,6 +208,8 @@ def test_model_cards_of_the_shipped_models_and_the_readme_table_match_the_files(
         "the models README is stale: run `colgnn models --markdown colgnn_core/assets/models/README.md`"
     page = tmp_path / "M.md"
     assert main(["models", "--markdown", str(page)]) == 0 and "wrote" in capsys.readouterr().out
-    assert "| `knife_torus.pt` | knife_torus (full) | full | 16/2/1 |" in page.read_text()
+    text = page.read_text()
+    assert "| `knife_torus_full.pt` | knife_torus (full) | full | 16/2/1 |" in text  # the paper's variant
+    assert "| `knife_torus.pt` | knife_torus (full) | baseline | 16/2/1 | order 0, coarse_nodes 32, " in text  # shipped
     assert main(["models", "--dir", str(tmp_path / "nope")]) == 2
     assert "no such models folder" in capsys.readouterr().err

@@ -209,6 +209,17 @@ def test_the_family_covers_the_workspace(name):
     assert span.max() > 0.45, span
 
 
+def test_knife_torus_plunges_reach_the_workspace_floor():
+    """The family's plunges go down to the workspace floor (``plunge_depth``), deeper than any press, so a fast
+    plunge to the deepest valid pose is inside the training data; every pose stays inside the workspace."""
+    scene = load_scene("knife_torus", "full")
+    assert np.max(scene.family["plunge_depth"]) > np.max(scene.family["depth"])
+    poses = np.concatenate([sample_poses(scene, s, 60, clip=False) for s in split_seeds("train", 30)])
+    assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
+    top = 0.08  # the tube's top: the presses stop at most family.depth (2 cm) below it
+    assert poses[:, 2].min() < top - np.max(scene.family["depth"]) - 0.02  # some plunge goes 2 cm deeper
+
+
 # -- the runtime ----------------------------------------------------------------------------------------------------
 def test_predictor_starts_from_and_relaxes_toward_the_settled_rest():
     scene = fx.scene()

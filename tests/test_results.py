@@ -51,7 +51,7 @@ def test_report_has_every_table_and_picture(report):
     size = "{latent}/{message_passing_steps}/{mlp_layers}".format(**fx.TINY_MODEL)
     assert s["model_sizes"] == {"full": size, "baseline": size}
     assert f"| full + correction (colgnn), {size} |" in md and f"| baseline (MeshGraphNets), {size} |" in md
-    assert data["scenes"]["sphere_mat"]["skipped"].startswith("no shipped full model")
+    assert data["scenes"]["sphere_mat"]["skipped"].startswith("no shipped model")
     for key in ("errors", "comparison"):
         path = out / "img" / f"{fx.SCENE}_{'rmse' if key == 'errors' else key}.png"
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -128,10 +128,46 @@ def test_correction_row_and_hard_cases_are_clean(report):
 
 
 def test_model_paths_and_bad_arguments(tmp_path):
-    (tmp_path / "cone_bunny.pt").write_bytes(b"x")
-    (tmp_path / "cone_bunny_subspace.pt").write_bytes(b"x")
-    (tmp_path / "cone_bunny_other.pt").write_bytes(b"x")
-    assert set(model_paths(tmp_path, "cone_bunny")) == {"full", "subspace"}
+    """The default model `<scene>.pt` fills the paper's `full` slot when it is that variant; any other default model
+    (the quasi-static networks) gets a `shipped` slot of its own, next to a `<scene>_full.pt`."""
+    full, other = tmp_path / f"{fx.SCENE}.pt", tmp_path / f"{fx.SCENE}_full.pt"
+    shutil.copyfile(fx.trained_checkpoint("full"), full)
+    (tmp_path / f"{fx.SCENE}_subspace.pt").write_bytes(b"x")
+    (tmp_path / f"{fx.SCENE}_other.pt").write_bytes(b"x")
+    assert model_paths(tmp_path, fx.SCENE) == {"subspace": tmp_path / f"{fx.SCENE}_subspace.pt", "full": full}
+    shutil.copyfile(fx.trained_checkpoint("full"), other)
+    assert model_paths(tmp_path, fx.SCENE) == {"subspace": tmp_path / f"{fx.SCENE}_subspace.pt", "full": other,
+                                               "shipped": full}
+    other.unlink()
+    shutil.copyfile(fx.trained_checkpoint("baseline"), full)
+    assert set(model_paths(tmp_path, fx.SCENE)) == {"subspace", "shipped"}
     with pytest.raises(InputError, match="unknown scene"):
         results(tmp_path / "docs", scenes=["nope"])
     assert main(["evaluate", "--out", str(tmp_path / "o")]) == 2  # neither --scene nor --all
+
+
+def test_a_shipped_model_apart_from_the_papers_variants_gets_its_own_rows(tmp_path):
+    """A scene whose default model is not the paper's full variant: the report measures both, marks the shipped
+    one "(colgnn)", judges fidelity and times, checks and pictures that one, and lists no missing row for it."""
+    models = tmp_path / "models"
+    models.mkdir()
+    shutil.copyfile(fx.trained_checkpoint("baseline"), models / f"{fx.SCENE}.pt")
+    shutil.copyfile(fx.trained_checkpoint("full"), models / f"{fx.SCENE}_full.pt")
+    data_root = tmp_path / "data"
+    shutil.copytree(fx.dataset_dir(), data_root / fx.SCENE)
+    rep = results(tmp_path / "docs", scenes=[fx.SCENE], data_root=data_root, models_dir=models, test_sequences=1,
+                  frames=fx.FRAMES, jobs=1, threads=1, compile=False, hard_frames=6, random_steps=6, progress=False)
+    s = rep.scenes[fx.SCENE]
+    assert s.checkpoints == {"full": str(models / f"{fx.SCENE}_full.pt"), "shipped": str(models / f"{fx.SCENE}.pt")}
+    assert set(s.rows) == {"ground_truth", "full", "full+correction", "shipped", "shipped+correction"}
+    assert list(s.relative) == ["full", "full+correction", "shipped", "shipped+correction", "node", "rest",
+                                "rest+correction"]
+    assert s.colgnn_key() == "shipped+correction"
+    c = s.rows["shipped+correction"].collisions
+    assert c.N_vf_total == 0 and c.N_ee_total == 0 and c.intersecting_frames == 0
+    md = (tmp_path / "docs" / "RESULTS.md").read_text()
+    size = "{latent}/{message_passing_steps}/{mlp_layers}".format(**fx.TINY_MODEL)
+    assert f"| **shipped model + correction (no caps, no rest relaxation) (colgnn), {size}** |" in md
+    assert f"| full + correction, {size} |" in md and "| shipped model | not shipped |" not in md
+    m = s.relative["shipped+correction"]["all"].mean
+    assert f"{fx.SCENE}: {m:.2f} / " in md  # the fidelity verdict is about the shipped model

@@ -1,17 +1,19 @@
 """``colgnn evaluate --all`` (``make results``): the results report ``docs/RESULTS.md``, end to end.
 
-For every scene with a shipped ``full`` model (``<scene>.pt``; the other variants are ``<scene>_<variant>.pt``
-in the same folder, each used where it exists) the report is rebuilt from scratch on this machine:
+For every scene with a shipped model (``<scene>.pt``, the scene's default: what the node and ``colgnn rollout``
+run) the report is rebuilt from scratch on this machine. The paper's variants are ``<scene>_<variant>.pt`` in the
+same folder, each used where it exists; where the shipped model is itself the paper's full variant (and there is no
+``<scene>_full.pt``), it fills that slot and the report has no separate "shipped" rows (:func:`model_paths`):
 
 1. **Test data**: ``test_sequences`` held-out family trajectories of ``frames`` frames simulated by the project's
    IPC solver (``colgnn generate --split test``; resumable, so a re-run reuses finished sequences). Their
    per-step solver times are the IPC column of Table 1: the solver on the same poses the models are timed on.
-2. **Speed** (Table 1): the Predictor with the shipped ``full`` model (``threads`` torch threads, optionally
+2. **Speed** (Table 1): the Predictor with the shipped model (``threads`` torch threads, optionally
    ``torch.compile``) over the first test sequence; "raw network" is the step without the correction stage
    (everything else the step does is included), "with correction" is the whole published step.
 3. **Collisions and accuracy** (Table 2, accuracy table, error-over-time plot):
-   :func:`colgnn_core.evaluation.accuracy.evaluate` of every variant (raw), plus the full model through the
-   correction, with the exact ipctk oracle.
+   :func:`colgnn_core.evaluation.accuracy.evaluate` of every variant (raw), plus the full and the shipped model
+   through the correction (the shipped one also as the node runs it), with the exact ipctk oracle.
 4. **Hard cases**: :func:`colgnn_core.evaluation.stability.hard_cases` through the Predictor, each frame and step
    checked by ipctk (:func:`colgnn_core.evaluation.stability.check_rollout`).
 5. **Speed against error**: :func:`colgnn_core.evaluation.frontier.frontier` where frontier checkpoints are shipped
@@ -53,15 +55,31 @@ from colgnn_core.scenes import load_scene, scene_names
 from colgnn_core.sim.dataset import generate_dataset, simulate_sequence
 from colgnn_core.evaluation.provenance import code_version, machine
 
-VARIANTS = ("subspace", "baseline", "no-compact", "full")
+PAPER_VARIANTS = ("subspace", "baseline", "no-compact", "full")
+SHIPPED = "shipped"  # the report slot of a scene's default model when it is not the paper's full variant
 PICTURE_DPI = 60  # the committed strips stay small (~100-150 KB each)
 FRONTIER_STEPS = 40  # the issue's frontier: rollout RMSE at 40 steps (the training horizon)
 
 
 def model_paths(models_dir: Path, scene_name: str) -> dict[str, Path]:
-    """The shipped checkpoints of a scene by variant (only those that exist)."""
-    names = {v: f"{scene_name}.pt" if v == "full" else f"{scene_name}_{v}.pt" for v in VARIANTS}
-    return {v: Path(models_dir) / n for v, n in names.items() if (Path(models_dir) / n).is_file()}
+    """The checkpoints of a scene by report slot, only those that exist: the paper's variants
+    (``<scene>_<variant>.pt``) and :data:`SHIPPED`, the scene's default model ``<scene>.pt``. A default model that
+    is the paper's full variant fills the ``full`` slot instead, unless ``<scene>_full.pt`` exists."""
+    models_dir = Path(models_dir)
+    out = {v: models_dir / f"{scene_name}_{v}.pt" for v in PAPER_VARIANTS}
+    out = {v: p for v, p in out.items() if p.is_file()}
+    default = models_dir / f"{scene_name}.pt"
+    if default.is_file():
+        if "full" not in out and load_model(default).meta.variant == "full":
+            out["full"] = default
+        else:
+            out[SHIPPED] = default
+    return out
+
+
+def shipped_slot(ckpts: dict[str, Path]) -> str:
+    """The report slot that holds the scene's default model (:func:`model_paths`)."""
+    return SHIPPED if SHIPPED in ckpts else "full"
 
 
 def test_data(scene, out_dir: Path, sequences: int, frames: int, jobs: int, progress: bool) -> tuple[Path, int, str]:
@@ -128,7 +146,7 @@ def pictures(evals_ckpts: dict, scene, data_dir: Path, img_dir: Path, errors: Pa
     gt = load_sequence(test_files(data_dir, scene)[0])
     x0 = gt.object_positions[0]
     run = {}
-    for key, (variant, corrected) in {"baseline": ("baseline", False), "colgnn": ("full", True),
+    for key, (variant, corrected) in {"baseline": ("baseline", False), "colgnn": (shipped_slot(evals_ckpts), True),
                                       "full": ("full", False), "no-compact": ("no-compact", False)}.items():
         if variant in evals_ckpts:
             run[key] = rollout(evals_ckpts[variant], gt.tool_poses, correction=corrected, scene=scene,
@@ -140,7 +158,7 @@ def pictures(evals_ckpts: dict, scene, data_dir: Path, img_dir: Path, errors: Pa
             labels.append(label)
     comparison = render_strip(seqs, labels, img_dir / f"{scene.name}_comparison.png", count=count, dpi=PICTURE_DPI)
     ablation = None
-    if "no-compact" in run:
+    if "no-compact" in run and "full" in run:
         ablation = str(render_strip([run["full"], run["no-compact"]], ["full", "no-compact"],
                                     img_dir / f"{scene.name}_ablation.png", count=count, dpi=PICTURE_DPI))
     return Pictures(errors=str(errors), comparison=str(comparison), ablation=ablation)
@@ -158,23 +176,27 @@ def plot_errors(scene_name: str, rows: dict[str, Row], path: Path) -> Path:
 def accuracy_rows(scene_name: str, ckpts: dict[str, Path], data_dir: Path, out: Path, progress: bool
                   ) -> tuple[dict[str, Row], dict[str, dict[str, MeanStd]], list[str], list[int]]:
     """(rows in ROWS order, relative displacement errors in RELATIVE_ROWS order, test sequence names, their frame
-    counts): every variant evaluated raw, the full model also through the correction and as the node runs it,
-    next to the two trivial baselines; the per-model reports go to ``out/results/<scene>/<variant>``."""
+    counts): every slot evaluated raw, the full and the shipped model also through the correction, the shipped
+    one also as the node runs it, next to the two trivial baselines; the per-model reports go to
+    ``out/results/<scene>/<slot>``."""
     rows: dict[str, Row] = {}
     relative: dict[str, dict] = {}
     sequences: list[str] | None = None
     frames: list[int] | None = None
+    shipped = shipped_slot(ckpts)
     for variant, path in ckpts.items():
-        modes = ("raw", "corrected") if variant == "full" else ("raw",)
+        modes = ("raw", "corrected") if variant in ("full", shipped) else ("raw",)
         e = evaluate(scene_name, checkpoint=path, data_dir=data_dir, out_dir=out / "results" / scene_name / variant,
                      correction_modes=modes, progress=progress)
         rows.setdefault("ground_truth", Row.from_dict(e["rows"]["ground_truth"]))  # rmse None: the reference
         rows[variant] = Row.from_dict(e["rows"]["raw"])
         relative[variant] = e["relative"]["raw"]
-        if variant == "full":
-            rows["full+correction"] = Row.from_dict(e["rows"]["corrected"])
-            relative.update({"full+correction": e["relative"]["corrected"], "node": e["relative"]["node"],
-                             "rest": e["relative"]["rest"], "rest+correction": e["relative"]["rest_correction"]})
+        if "corrected" in modes:
+            rows[f"{variant}+correction"] = Row.from_dict(e["rows"]["corrected"])
+            relative[f"{variant}+correction"] = e["relative"]["corrected"]
+        if variant == shipped:
+            relative.update({"node": e["relative"]["node"], "rest": e["relative"]["rest"],
+                             "rest+correction": e["relative"]["rest_correction"]})
         sequences = sequences if sequences is not None else e["sequences"]
         frames = frames if frames is not None else e["frames"]
     rel = {k: {part: MeanStd.from_dict(relative[k][part]) for part in ("all", "contact")}
@@ -186,12 +208,12 @@ def frontier_section(scene_name: str, ckpts: dict[str, Path], models_dir: Path, 
                      steps: int, test_sequences: int, threads: int, compile: bool,
                      progress: bool) -> FrontierSection | None:
     """The speed/error frontier of the shipped frontier checkpoints (``frontier/<scene>/*.pt`` beside the models)
-    with the scene's full and baseline models; None when none are shipped."""
+    with the scene's shipped, full and baseline models; None when none are shipped."""
     front = sorted((models_dir / "frontier" / scene_name).glob("*.pt"))
     if not front:
         return None
-    f = frontier(scene_name, [str(p) for p in front] + [str(ckpts["full"])]
-                 + ([str(ckpts["baseline"])] if "baseline" in ckpts else []), data_dir,
+    f = frontier(scene_name, [str(p) for p in front] + [str(ckpts[k]) for k in (SHIPPED, "full", "baseline")
+                                                          if k in ckpts], data_dir,
                  out / "results" / scene_name / "frontier", steps=steps, max_sequences=test_sequences,
                  ipc_sequences=1, threads=threads, compile=compile, progress=progress)
     img = out / "img" / f"{scene_name}_frontier.png"
@@ -205,9 +227,9 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
                   progress: bool) -> SceneResults | SkippedScene:
     """Everything the report says about one scene (see the module docstring)."""
     ckpts = model_paths(models_dir, scene_name)
-    if "full" not in ckpts:
-        return SkippedScene(scene_name, f"no shipped full model ({models_dir / (scene_name + '.pt')})")
-    loaded = load_model(ckpts["full"])
+    if shipped_slot(ckpts) not in ckpts:
+        return SkippedScene(scene_name, f"no shipped model ({models_dir / (scene_name + '.pt')})")
+    loaded = load_model(ckpts[shipped_slot(ckpts)])
     scene = load_scene(scene_name, loaded.meta.resolution)
     t0 = time.perf_counter()
     data_dir, resumed, failed = test_data(scene, data_root / scene_name, test_sequences, frames, jobs, progress)

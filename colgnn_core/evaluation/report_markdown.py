@@ -9,9 +9,9 @@ import os
 from pathlib import Path
 
 from colgnn_core.evaluation.frontier import format_frontier
-from colgnn_core.evaluation.report_data import (CROSSING_KEYS, PAPER_HARDWARE, PAPER_TABLE1, PAPER_TABLE2,
-                                                RELATIVE_ROWS, ROWS, CollisionSummary, MeanStd, ResultsReport,
-                                                SceneResults)
+from colgnn_core.evaluation.report_data import (CROSSING_KEYS, OPTIONAL_ROWS, PAPER_HARDWARE, PAPER_TABLE1,
+                                                PAPER_TABLE2, RELATIVE_ROWS, ROWS, CollisionSummary, MeanStd,
+                                                ResultsReport, SceneResults)
 
 
 def _rel(path: str, out: Path) -> str:
@@ -40,7 +40,9 @@ def _cell(c: CollisionSummary, key: str, base: CollisionSummary | None) -> str:
 
 
 def _sized(label: str, key: str, scene: SceneResults) -> str:
-    """Row label with the network size (latent/MP steps/MLP layers) of the row's checkpoint, if it has one."""
+    """Row label, marked "(colgnn)" on the row that colgnn publishes, with the network size (latent/MP steps/MLP
+    layers) of the row's checkpoint, if it has one."""
+    label = f"{label} (colgnn)" if key == scene.colgnn_key() else label
     size = scene.size(key)
     return f"{label}, {size}" if size else label
 
@@ -114,7 +116,8 @@ def _table2(report: ResultsReport) -> list[str]:
         lines += [f"### {name}", "", head, "|---|" + "---:|" * 7]
         for key, label in ROWS:
             if key not in s.rows:
-                lines.append(f"| {label} | not shipped | | | | | | |")
+                if key not in OPTIONAL_ROWS:
+                    lines.append(f"| {label} | not shipped | | | | | | |")
                 continue
             c = s.rows[key].collisions
             ref = base if key not in ("ground_truth", "baseline") else None
@@ -136,7 +139,7 @@ def _relative_table(s: SceneResults) -> list[str]:
     for key, label in RELATIVE_ROWS:
         if key in s.relative:
             r = s.relative[key]
-            bold = "**" if key in ("full+correction", "rest+correction") else ""
+            bold = "**" if key in (s.colgnn_key(), "rest+correction") else ""
             lines.append(f"| {bold}{_sized(label, key, s)}{bold} | {_pm3(r['all'])} | {_pm3(r['contact'])} |")
     return lines + [""]
 
@@ -187,9 +190,9 @@ def _frontier(report: ResultsReport, out: Path) -> list[str]:
 
 def _hard_cases(report: ResultsReport) -> list[str]:
     lines = ["## Hard cases", "",
-             "The shipped full model through the Predictor as the ROS node runs it (correction on, output capped by "
-             "the training data's extremes, rest relaxation 0.05). Every published frame and step is checked by "
-             "ipctk: intersecting = object and tool intersect; crossing = `is_step_collision_free` (Tight-Inclusion "
+             "The shipped model (`<scene>.pt`) through the Predictor as the ROS node runs it (correction on, output "
+             "capped by the training data's extremes, rest relaxation 0.05). Every published frame and step is checked "
+             "by ipctk: intersecting = object and tool intersect; crossing = `is_step_collision_free` (Tight-Inclusion "
              "CCD, its default line-search clearance) finds a collision in the straight motion from the previous "
              "published frame, whether the Predictor split it into model steps or not: a pair comes within "
              "min(0.2 d0, 1e-4 m) of the tool, which the Predictor guarantees not to happen; contact = it really "
@@ -246,8 +249,8 @@ def _collision_claims(ok: dict[str, SceneResults]) -> list[str]:
             r = reduction(rows["full"].collisions.N_vf, rows["baseline"].collisions.N_vf)
             if r is not None:
                 red.append((n, r))
-        if "full+correction" in rows:
-            c = rows["full+correction"].collisions
+        if s.colgnn_key() in rows:
+            c = rows[s.colgnn_key()].collisions
             zero.append((n, c.N_vf_total + c.N_ee_total, c.intersecting_frames))
     if red:
         lines.append("**Collisions.** The collision-aware losses change the raw network's vertex-face crossings "
@@ -270,14 +273,15 @@ def _collision_claims(ok: dict[str, SceneResults]) -> list[str]:
 def _accuracy_claim(ok: dict[str, SceneResults]) -> list[str]:
     worse = []
     for n, s in ok.items():
-        rows = s.rows
-        if "full" in rows and "full+correction" in rows:
-            a, b = rows["full"].rmse.all.mean, rows["full+correction"].rmse.all.mean
+        rows, key = s.rows, s.colgnn_key()
+        raw = key.replace("+correction", "")
+        if raw in rows and key in rows:
+            a, b = rows[raw].rmse.all.mean, rows[key].rmse.all.mean
             if a and b is not None:
                 worse.append((n, 100 * (b - a) / a))
     if not worse:
         return []
-    worst = max(s.rows["full+correction"].rmse.all.mean for s in ok.values() if "full+correction" in s.rows)
+    worst = max(s.rows[s.colgnn_key()].rmse.all.mean for s in ok.values() if s.colgnn_key() in s.rows)
     return ["**Accuracy.** The correction changes the rollout RMSE over all steps by "
             + ", ".join(f"{w:+.1f}% ({n})" for n, w in worse)
             + " relative to the raw network (target: no worse than +10%). The corrected rollout's RMSE over "
@@ -291,9 +295,9 @@ def _fidelity_claim(ok: dict[str, SceneResults]) -> list[str]:
     parts, better = [], []
     for n, s in ok.items():
         r = s.relative
-        if not all(k in r and r[k]["all"].mean is not None for k in ("full+correction", "rest+correction")):
+        if not all(k in r and r[k]["all"].mean is not None for k in (s.colgnn_key(), "rest+correction")):
             continue
-        m, b = r["full+correction"], r["rest+correction"]
+        m, b = r[s.colgnn_key()], r["rest+correction"]
         half = m["all"].mean <= 0.5 * b["all"].mean and m["contact"].mean <= 0.5 * b["contact"].mean
         verdict = ("better than both baselines, at most half of rest + correction" if half
                    else "better than both baselines, but not by half" if m["all"].mean < min(1.0, b["all"].mean)
@@ -330,7 +334,8 @@ def discussion(report: ResultsReport) -> list[str]:
                  f"{sum(h.contact for h in done)} touch) and {sum(h.intersecting for h in done)} intersecting frames "
                  f"in {sum(h.steps for h in done)} published steps.")
     lines.append("")
-    missing = sorted({label for s in ok.values() for key, label in ROWS if key not in s.rows})
+    missing = sorted({label for s in ok.values() for key, label in ROWS
+                      if key not in s.rows and key not in OPTIONAL_ROWS})
     if missing:
         lines.append("**Not measured here.** Rows without a shipped model are marked \"not shipped\" in Table 2 ("
                      + ", ".join(missing) + "); they are a training run each, not a code change.")

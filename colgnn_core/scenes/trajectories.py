@@ -217,7 +217,7 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
     kind = STROKE_KINDS[int(rng.choice(len(STROKE_KINDS), p=weights / weights.sum()))]
     top = float(np.max(fam["speed"]))
     speed = top if kind == "plunge" else _uniform(rng, fam["speed"])
-    depth = float(np.max(fam["depth"])) if kind == "plunge" else _uniform(rng, fam["depth"])
+    depth = _plunge_depth(rng, fam) if kind == "plunge" else _uniform(rng, fam["depth"])
     tilt, azimuth, yaw = _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi), _uniform(
         rng, fam.get("yaw_deg", 0.0))
     centre = 0.5 * np.add(*scene.object_bbox())[:2]
@@ -232,6 +232,7 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
         xy = np.asarray(fam["target_xy"], dtype=np.float64) + r * np.array([np.cos(phi), np.sin(phi)])
         quat = orientation(xy)
         h = _contact_heights(scene, xy[None], quat, fallback=float(scene.tool_rest_pose[2]) - _clearance(scene))[0]
+        depth = min(depth, h - float(scene.workspace_min[2]))  # a deep plunge stops at the workspace floor
     else:
         near = path.last[:2] if rng.uniform() < float(fam.get("near_fraction", 0.5)) else None
         xy, quat, h = _coverage_target(scene, rng, depth, near, orientation)
@@ -258,6 +259,15 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
     _retract(scene, path, retract, along_axis=bool(fam.get("retract_along_tool_axis", False)))
     s_lo, s_hi = fam.get("settle", [0, 0])
     path.hold(int(rng.integers(int(s_lo), int(s_hi) + 1)))
+
+
+def _plunge_depth(rng: np.random.Generator, fam: dict) -> float:
+    """A plunge's depth below the surface point hit, m: drawn from ``plunge_depth`` where the family gives it (down
+    to the workspace floor, deeper than any press), else the deepest press. Scenes without the key draw nothing, so
+    their sequences stay as they were."""
+    if "plunge_depth" in fam:
+        return _uniform(rng, fam["plunge_depth"])
+    return float(np.max(fam["depth"]))
 
 
 def _retract(scene: Scene, path: _Path, speed: float, along_axis: bool) -> None:
