@@ -206,8 +206,9 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
 
     Kinds, drawn with ``stroke_weights`` (press, drag, plunge): a *press* anywhere on the tool-facing surface; a
     *press-and-drag* across it (``drag`` m, at the same indentation below the local surface); a *plunge* at the top
-    speed to ``plunge_depth`` (m, drawn; stopped at the workspace floor) or, without that key, the deepest press. The first stroke aims at the family's target disk (``target_xy``,
-    ``target_jitter``: contact within the first frames), later ones anywhere. Every stroke may be tilted
+    speed to ``plunge_depth`` (m, drawn; stopped at the workspace floor) or, without that key, the deepest press.
+    The first stroke aims at the family's target disk (``target_xy``, ``target_jitter``: contact within the first
+    frames), later ones anywhere. Every stroke may be tilted
     (``tilt_deg``) and turned (``yaw_deg``, about the radial direction from the object's centre when
     ``yaw_radial``), travels above the object at the retract height before it descends (no sweep through a raised
     part), and ends with a retract and ``settle`` frames of waiting, so sequences show the object returning to rest.
