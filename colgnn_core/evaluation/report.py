@@ -226,10 +226,11 @@ def scene_results(scene_name: str, out: Path, data_root: Path, models_dir: Path,
                   frames: int, jobs: int, threads: int, compile: bool, hard_frames: int, random_steps: int,
                   progress: bool) -> SceneResults | SkippedScene:
     """Everything the report says about one scene (see the module docstring)."""
+    default = models_dir / f"{scene_name}.pt"
+    if not default.is_file():  # a `<scene>_full.pt` alone is a comparison model, not what the scene ships
+        return SkippedScene(scene_name, f"no shipped model ({default})")
     ckpts = model_paths(models_dir, scene_name)
-    if shipped_slot(ckpts) not in ckpts:
-        return SkippedScene(scene_name, f"no shipped model ({models_dir / (scene_name + '.pt')})")
-    loaded = load_model(ckpts[shipped_slot(ckpts)])
+    loaded = load_model(default)
     scene = load_scene(scene_name, loaded.meta.resolution)
     t0 = time.perf_counter()
     data_dir, resumed, failed = test_data(scene, data_root / scene_name, test_sequences, frames, jobs, progress)
