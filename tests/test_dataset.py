@@ -1,17 +1,22 @@
 """Dataset generation: determinism, files + manifest, resume, shards, custom poses, bad input."""
 
+import copy
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from colgnn_core.errors import InputError
 from colgnn_core.io import load_sequence
+from colgnn_core.learn.data import check_manifest
 from colgnn_core.scenes import load_scene, sample_poses
+from colgnn_core.scenes.scene import build_scene
 from colgnn_core.sim.dataset import generate_dataset, parse_shard, simulate_sequence
 
 SCENE = "cylinder_banana"  # the cheapest 'ci' scene (~0.1 s per step)
+SCENE_DIR = Path(__file__).resolve().parents[1] / "colgnn_core" / "scenes"
 
 
 def test_same_seed_gives_the_same_sequence():
@@ -47,6 +52,7 @@ def test_generate_writes_sequences_and_manifest(dataset):
         assert entry["ms_per_step_median"] > 0
         for key in ("object_tets", "object_rest", "newton_iterations", "step_ms", "min_distance"):
             assert key in seq.extra
+        assert str(seq.extra["physics_fingerprint"]) == load_scene(SCENE, "ci").physics_fingerprint()
         assert seq.extra["newton_iterations"].shape == (4,)
         seeds[entry["split"]].append(entry["seed"])
     assert not set(seeds["train"]) & set(seeds["test"])
@@ -58,6 +64,39 @@ def test_generate_resumes_without_recomputing(dataset):
     again = generate_dataset(SCENE, "ci", out, sequences=2, frames=4, test_sequences=1, progress=False)
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == mtimes
     assert again["sequences"] == manifest["sequences"]
+
+
+def _variant(scene, **changes):
+    """The scene rebuilt from its TOML with ``changes`` ({table: {key: value}}) applied."""
+    cfg = copy.deepcopy(scene.config)
+    for table, values in changes.items():
+        cfg.setdefault(table, {}).update(values)
+    return build_scene(scene.name, scene.resolution, cfg, SCENE_DIR)
+
+
+def test_the_physics_fingerprint_follows_the_physics_not_the_mesh():
+    scene = load_scene(SCENE, "ci")
+    same = _variant(scene)
+    stiffer = _variant(scene, material={"youngs_modulus": 2 * scene.material.youngs_modulus})
+    glued = _variant(scene, object={"pin_height": 0.004})
+    cfg = copy.deepcopy(scene.config)
+    cfg["friction"] = 0.5 + float(scene.friction)  # a top-level key
+    rough = build_scene(scene.name, scene.resolution, cfg, SCENE_DIR)
+    assert len(glued.pinned) > len(scene.pinned)
+    assert same.physics_fingerprint() == scene.physics_fingerprint()
+    others = [v.physics_fingerprint() for v in (stiffer, glued, rough)]
+    assert len({scene.physics_fingerprint(), *others}) == 4
+    # The mesh is the same, so only the physics fingerprint can tell the data apart.
+    assert {v.object.fingerprint() for v in (stiffer, glued, rough)} == {scene.object.fingerprint()}
+
+
+def test_training_refuses_data_simulated_with_other_physics(dataset):
+    out, manifest = dataset
+    scene = load_scene(SCENE, "ci")
+    check_manifest(manifest, scene, "ds")  # the scene it was made with
+    stiffer = _variant(scene, material={"youngs_modulus": 2 * scene.material.youngs_modulus})
+    with pytest.raises(InputError, match="other 'cylinder_banana' physics"):
+        check_manifest(manifest, stiffer, "ds")
 
 
 def test_generate_redoes_a_corrupted_sequence(tmp_path):

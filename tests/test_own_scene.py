@@ -3,6 +3,7 @@ refusal, the derived scene, and the scene path (COLGNN_SCENE_PATH) seen by every
 
 from __future__ import annotations
 
+import copy
 import json
 import subprocess
 import sys
@@ -12,9 +13,12 @@ import numpy as np
 import pytest
 
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.fit import physics_changed
 from colgnn_core.geometry.mesh_import import import_surface
 from colgnn_core.geometry.tetmesh import check_closed_surface
+from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.custom import parse_material, parse_tool
+from colgnn_core.scenes.scene import build_scene
 from tests.helpers import own_scene as own
 
 CUBE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
@@ -156,6 +160,21 @@ def test_an_object_that_does_not_hold_its_shape_is_refused_before_anything_is_wr
 
 
 @pytest.mark.timeout(900)
+def test_a_refit_after_a_physics_edit_drops_the_trained_model(tmp_path):
+    # A user edits the material in the TOML and runs `colgnn fit` again: the model trained on the old physics goes
+    # (its data is redone by `generate`, whose sequences record the physics fingerprint).
+    scene = load_scene("cylinder_banana", "ci")
+    ckpt = tmp_path / "train.pt"
+    ckpt.write_bytes(b"weights")
+    assert not physics_changed(scene, tmp_path, ckpt)  # first fit: nothing recorded yet
+    assert not physics_changed(scene, tmp_path, ckpt) and ckpt.is_file()  # same physics: kept
+    cfg = copy.deepcopy(scene.config)
+    cfg["material"]["youngs_modulus"] *= 2
+    stiffer = build_scene(scene.name, "ci", cfg, own.REPO / "colgnn_core" / "scenes")
+    assert physics_changed(stiffer, tmp_path, ckpt) and not ckpt.is_file()
+    assert json.loads((tmp_path / "physics.json").read_text())["physics_fingerprint"] == stiffer.physics_fingerprint()
+
+
 def test_fit_trains_evaluates_and_reports_within_its_budget():
     res, wall = own.fitted()
     assert res.returncode == 0, res.stderr[-3000:]

@@ -191,8 +191,11 @@ def fit(name: str, resolution: str = "ci", minutes: float = 30.0, jobs: int = 1,
              f"{plan.shares_s['train'] / 60:.1f} min, evaluation {plan.shares_s['evaluate'] / 60:.1f} min; "
              f"{plan.test_sequences} held-out sequence(s), {plan.frames} frames each", quiet)
         data = work / "data"
-        _data_stage(name, resolution, data, plan, jobs, dask, prog, quiet, work)
         ckpt = work / "train.pt"
+        if physics_changed(scene, work, ckpt):
+            _say(prog, "the scene's physics changed since the last fit (material, support, friction, dt or tool): "
+                 "its data is simulated and its model trained again", quiet)
+        _data_stage(name, resolution, data, plan, jobs, dask, prog, quiet, work)
         steps_done = _train_stage(scene, data, ckpt, plan, prog, quiet, work)
         prog.set("evaluate", "held-out sequences")
         metrics = evaluate(name, checkpoint=str(ckpt), data_dir=data, out_dir=work / "eval",
@@ -268,6 +271,25 @@ def _replan(plan: FitPlan, per_seq: float, left: float) -> None:
 def _dask_workers_hint(address: str) -> int:
     """Workers of a ``local:N`` cluster; 4 for a remote one (only sizes the first round)."""
     return int(address.split(":")[1]) if address.startswith("local:") else 4
+
+
+def physics_changed(scene, work: Path, ckpt: Path) -> bool:
+    """Whether the scene's physics fingerprint differs from the one the work folder's last fit recorded. If so the
+    trained checkpoint is removed (the data's sequences record the fingerprint, so `generate` redoes them); either
+    way the current fingerprint is recorded."""
+    path = work / "physics.json"
+    now = scene.physics_fingerprint()
+    before = None
+    if path.is_file():
+        try:
+            before = json.loads(path.read_text()).get("physics_fingerprint")
+        except (OSError, json.JSONDecodeError, AttributeError):
+            before = None
+    changed = before is not None and before != now
+    if changed:
+        ckpt.unlink(missing_ok=True)
+    _write_json(path, {"physics_fingerprint": now})
+    return changed
 
 
 def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, quiet: bool, work: Path) -> int:

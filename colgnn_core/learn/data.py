@@ -66,7 +66,7 @@ def read_manifest(data_dir: str | Path) -> dict | None:
 
 
 def check_manifest(manifest: dict | None, scene, source: str) -> None:
-    """InputError when the manifest names another scene, resolution or mesh fingerprint."""
+    """InputError when the manifest names another scene, resolution, mesh or physics fingerprint."""
     if not manifest:
         return
     for key, want in (("scene", scene.name), ("resolution", scene.resolution)):
@@ -75,6 +75,10 @@ def check_manifest(manifest: dict | None, scene, source: str) -> None:
     fp = manifest.get("object_fingerprint")
     if fp is not None and fp != scene.object.fingerprint():
         raise InputError(f"{source}: dataset was generated on a different {scene.name!r} mesh (fingerprint mismatch)")
+    fp = manifest.get("physics_fingerprint")
+    if fp is not None and fp != scene.physics_fingerprint():
+        raise InputError(f"{source}: dataset was simulated with other {scene.name!r} physics (material, glued "
+                         f"vertices, ground, friction, dt or tool changed since; physics fingerprint mismatch)")
 
 
 def load_checked_sequence(path: Path, scene) -> SeqArrays:

@@ -9,6 +9,8 @@ a user's scenes (``colgnn scene new``) in the folders of ``COLGNN_SCENE_PATH`` (
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import tomllib
 from dataclasses import dataclass, field
@@ -67,6 +69,21 @@ class Scene:
     pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     target: np.ndarray = field(default_factory=lambda: np.zeros(3))
     config: dict = field(default_factory=dict, repr=False)
+
+    def physics_fingerprint(self) -> str:
+        """sha256 hex over what the ground truth depends on besides the object mesh: dt, material, glued vertices,
+        ground, gravity, dhat, friction, the tool's shape and mesh. A sequence records it, so that data simulated
+        before a scene's physics changed (say, its mat glued down or its material stiffened) is not reused."""
+        h = hashlib.sha256()
+        h.update(json.dumps({"dt": float(self.dt), "E": float(self.material.youngs_modulus),
+                             "nu": float(self.material.poisson_ratio), "rho": float(self.material.density),
+                             "ground": self.ground_height, "gravity": np.asarray(self.gravity, float).tolist(),
+                             "dhat": float(self.dhat), "friction": float(self.friction),
+                             "tool": [self.tool.shape, {k: float(v) for k, v in self.tool.params.items()}]},
+                            sort_keys=True).encode())
+        h.update(np.ascontiguousarray(self.pinned, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(np.round(self.tool.vertices, 9) + 0.0).tobytes())
+        return h.hexdigest()
 
     def object_bbox(self) -> tuple[np.ndarray, np.ndarray]:
         """(min [3], max [3]) of the object's rest vertices, world (m)."""

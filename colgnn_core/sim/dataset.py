@@ -11,7 +11,8 @@ Every sequence file carries, besides the contract keys, ``object_tets``,
 ``object_rest``, ``newton_iterations`` [T], ``step_ms`` [T], ``min_distance`` [T] (object–tool, m),
 ``kappa`` [T] (frame 0 has zeros / its initial distance), ``subframes`` [T] (implicit steps
 per frame: more than 1 where a failed solve was halved), and ``seed``, ``scene``,
-``resolution``, ``split``, ``dhat``, ``dmin``, ``object_fingerprint``, ``sim_options`` (JSON)
+``resolution``, ``split``, ``dhat``, ``dmin``, ``object_fingerprint``, ``physics_fingerprint``
+(:meth:`~colgnn_core.scenes.Scene.physics_fingerprint`), ``sim_options`` (JSON)
 so the manifest can be rebuilt from the files. Where the straight motion into a frame is not
 collision-free, the file records the intermediate states of its collision-free path
 (``subframe_frame``, ``subframe_object_positions``, ``subframe_tool_positions``:
@@ -23,8 +24,8 @@ A family sequence that still fails verification (SimulationError: even 16 sub-fr
 not converge) is replaced by a spare seed of the same split (``max_retries``); the manifest
 lists the rejected seeds and why, so any bias this introduces is visible.
 
-Resume: a sequence whose file exists, loads, matches the requested scene (and its mesh
-fingerprint) / seed / frames / solver options and (if the manifest lists it) has the
+Resume: a sequence whose file exists, loads, matches the requested scene (its mesh
+and physics fingerprints) / seed / frames / solver options and (if the manifest lists it) has the
 listed sha256, is skipped. Sharding
 splits the ordered job list as ``jobs[i::n]`` so several machines can share a dataset;
 the manifest is merged (re-read, updated, atomically replaced) after every sequence. On a cluster, ``dask``
@@ -175,15 +176,22 @@ def _failure_key(job: _Job) -> dict:
             "sim_options": _options_key(job)}
 
 
-def _matches(job: _Job, seq: Sequence, fingerprint: str) -> bool:
-    """Was ``seq`` produced by ``job`` (same scene mesh, seed, frames, solver options)?"""
+def scene_stamp(scene) -> dict[str, str]:
+    """What a sequence records about the scene that made it: the object mesh's and the physics' fingerprints."""
+    return {"object_fingerprint": scene.object.fingerprint(), "physics_fingerprint": scene.physics_fingerprint()}
+
+
+def _matches(job: _Job, seq: Sequence, stamp: dict[str, str]) -> bool:
+    """Was ``seq`` produced by ``job`` (same scene mesh and physics, seed, frames, solver options)? A sequence from
+    before the physics fingerprint was recorded is taken on its mesh fingerprint alone."""
     ex = seq.extra
     try:
         return (
             seq.frames == job.frames
             and str(ex["scene"]) == job.scene
             and str(ex["resolution"]) == job.resolution
-            and str(ex["object_fingerprint"]) == fingerprint
+            and str(ex["object_fingerprint"]) == stamp["object_fingerprint"]
+            and str(ex.get("physics_fingerprint", stamp["physics_fingerprint"])) == stamp["physics_fingerprint"]
             and str(ex["sim_options"]) == _options_key(job)
             and int(ex["seed"]) in (job.seed, *job.fallback_seeds)
             and (job.poses is None or np.allclose(seq.tool_poses, job.poses))
@@ -218,7 +226,7 @@ def simulate_job(job: _Job, scene) -> dict:
         return {"error": f"{type(exc).__name__}: {exc}", "rejected": rejected, "failure": failure}
 
 
-def save_job(job: _Job, result: dict, fingerprint: str) -> dict:
+def save_job(job: _Job, result: dict, stamp: dict[str, str]) -> dict:
     """Write a simulated job's sequence atomically (this process); its manifest entry, or the error entry."""
     if "error" in result:
         entry = {"file": Path(job.file).name, "split": job.split, "seed": job.seed, "error": result["error"],
@@ -233,7 +241,7 @@ def save_job(job: _Job, result: dict, fingerprint: str) -> dict:
             "scene": np.asarray(job.scene),
             "resolution": np.asarray(job.resolution),
             "split": np.asarray(job.split),
-            "object_fingerprint": np.asarray(fingerprint),
+            **{k: np.asarray(v) for k, v in stamp.items()},
             "sim_options": np.asarray(_options_key(job)),
         }
     )
@@ -255,7 +263,7 @@ def _run_job(job: _Job) -> dict:
     except InputError as exc:
         return {"file": Path(job.file).name, "split": job.split, "seed": job.seed,
                 "error": f"InputError: {exc}", "rejected_seeds": []}
-    return save_job(job, simulate_job(job, scene), scene.object.fingerprint())
+    return save_job(job, simulate_job(job, scene), scene_stamp(scene))
 
 
 def _read_manifest(out_dir: Path) -> dict:
@@ -287,7 +295,7 @@ def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], faile
         fh.write("\n")
 
 
-def _is_done(job: _Job, manifest: dict, fingerprint: str) -> tuple[bool, dict | None]:
+def _is_done(job: _Job, manifest: dict, stamp: dict[str, str]) -> tuple[bool, dict | None]:
     """(complete?, manifest entry to keep) for an existing file."""
     path = Path(job.file)
     if not path.is_file():
@@ -300,7 +308,7 @@ def _is_done(job: _Job, manifest: dict, fingerprint: str) -> tuple[bool, dict | 
         seq = load_sequence(path)
     except (InputError, OSError):
         return False, None
-    if not _matches(job, seq, fingerprint):
+    if not _matches(job, seq, stamp):
         return False, None
     if listed is not None and listed.get("sha256") == digest:
         return True, listed
@@ -387,14 +395,15 @@ def generate_dataset(
         "scene": scene_name,
         "resolution": resolution,
         "dt": float(scene.dt),
-        "object_fingerprint": scene.object.fingerprint(),
+        **scene_stamp(scene),
         "sim_options": dict(opts),
     }
     manifest = _read_manifest(out)
     if manifest.get("scene", scene_name) != scene_name or manifest.get("resolution", resolution) != resolution:
         raise InputError(f"{out / MANIFEST} belongs to {manifest.get('scene')}/{manifest.get('resolution')}, "
                          f"not {scene_name}/{resolution}")
-    done, todo, failures = _triage(my_jobs, manifest, header["object_fingerprint"], retry_failed)
+    stamp = scene_stamp(scene)
+    done, todo, failures = _triage(my_jobs, manifest, stamp, retry_failed)
     _write_manifest(out, header, done)
 
     bar = None
@@ -419,7 +428,7 @@ def generate_dataset(
             on_entry(entry)
 
     if dask is not None and todo:
-        _run_on_dask(todo, scene, header["object_fingerprint"], dask, record)
+        _run_on_dask(todo, scene, stamp, dask, record)
     else:
         _run_jobs(todo, int(jobs), record)
     if bar is not None:
@@ -461,7 +470,7 @@ def _family_jobs(scene_name: str, resolution: str, out: Path, opts: tuple, split
     return jobs
 
 
-def _triage(my_jobs: list[_Job], manifest: dict, fingerprint: str, retry_failed: bool
+def _triage(my_jobs: list[_Job], manifest: dict, stamp: dict[str, str], retry_failed: bool
             ) -> tuple[dict[str, dict], list[_Job], list[str]]:
     """(finished sequences' manifest entries, jobs to simulate, known failures): a finished file is kept, a job
     whose every seed failed before is reported again (unless ``retry_failed``), the rest is to do."""
@@ -469,7 +478,7 @@ def _triage(my_jobs: list[_Job], manifest: dict, fingerprint: str, retry_failed:
     todo: list[_Job] = []
     failures: list[str] = []
     for job in my_jobs:
-        ok, entry = _is_done(job, manifest, fingerprint)
+        ok, entry = _is_done(job, manifest, stamp)
         known = manifest.get("failed", {}).get(Path(job.file).name)
         if ok:
             done[Path(job.file).name] = entry
@@ -482,7 +491,7 @@ def _triage(my_jobs: list[_Job], manifest: dict, fingerprint: str, retry_failed:
     return done, todo, failures
 
 
-def _run_on_dask(todo: list[_Job], scene, fingerprint: str, address: str, record) -> None:
+def _run_on_dask(todo: list[_Job], scene, stamp: dict[str, str], address: str, record) -> None:
     """Simulate ``todo`` on a Dask cluster (one task per sequence; the scene is sent once); write and ``record``
     each sequence here as it arrives."""
     from distributed import as_completed  # lazy: only runs that ask for Dask import it
@@ -493,7 +502,7 @@ def _run_on_dask(todo: list[_Job], scene, fingerprint: str, address: str, record
                                  f"{os.getpid()}-{time.time_ns()}"): job for job in todo}
         try:
             for fut in as_completed(futures):
-                record(save_job(futures[fut], fut.result(), fingerprint))
+                record(save_job(futures[fut], fut.result(), stamp))
         finally:
             client.cancel(list(futures))
 
