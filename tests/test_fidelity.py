@@ -1,7 +1,9 @@
 """Fidelity pieces: the relative displacement metric, the trivial baselines, the coarse level, the quasi-static
 output, the workspace-covering families, one settled rest state and the Predictor's domain check."""
 
+import copy
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +17,11 @@ from colgnn_core.runtime.models import RestModel, rest_baseline, settled_rest
 from colgnn_core.runtime.predictor import Predictor
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import load_scene
+from colgnn_core.scenes.scene import build_scene
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 from tests.helpers import train_data as fx
+
+SCENES_DIR = Path(__file__).resolve().parents[1] / "colgnn_core" / "scenes"
 
 torch.set_num_threads(1)
 
@@ -218,6 +223,27 @@ def test_knife_torus_plunges_reach_the_workspace_floor():
     assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
     top = 0.08  # the tube's top: the presses stop at most family.depth (2 cm) below it
     assert poses[:, 2].min() < top - np.max(scene.family["depth"]) - 0.02  # some plunge goes 2 cm deeper
+
+
+
+def test_drag_depth_sends_the_family_s_drags_deeper():
+    """``family.drag_depth`` draws a drag's depth apart from the presses' (slices as deep as the workspace); without
+    the key a drag goes as deep as a press. Only drags here (``stroke_weights``), every pose inside the workspace."""
+    base = load_scene("knife_torus", "full")
+    cfg = copy.deepcopy(base.config)
+    cfg["family"]["stroke_weights"] = [0.0, 1.0, 0.0]
+    cfg["family"].pop("drag_depth", None)
+    shallow = build_scene("knife_torus", "full", cfg, SCENES_DIR)
+    cfg["family"]["drag_depth"] = [0.04, 0.045]
+    deep = build_scene("knife_torus", "full", cfg, SCENES_DIR)
+    top = 0.08  # the tube's top
+    for scene, lowest in ((shallow, top - np.max(base.family["depth"]) - 1e-3), (deep, None)):
+        poses = np.concatenate([sample_poses(scene, s, 60, clip=False) for s in split_seeds("train", 10)])
+        assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
+        if lowest is not None:
+            assert poses[:, 2].min() > lowest  # drags no deeper than the deepest press
+        else:
+            assert poses[:, 2].min() < top - 0.035  # the slices reach 3.5 cm and more into the tube
 
 
 # -- the runtime ----------------------------------------------------------------------------------------------------

@@ -205,8 +205,9 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
     """One stroke of a workspace-covering family (``family.region = "surface"``).
 
     Kinds, drawn with ``stroke_weights`` (press, drag, plunge): a *press* anywhere on the tool-facing surface; a
-    *press-and-drag* across it (``drag`` m, at the same indentation below the local surface); a *plunge* at the top
-    speed to ``plunge_depth`` (m, drawn; stopped at the workspace floor) or, without that key, the deepest press.
+    *press-and-drag* across it (``drag`` m, at the same indentation below the local surface, drawn from
+    ``drag_depth`` where given, else ``depth``); a *plunge* at the top speed to ``plunge_depth`` (m, drawn) or,
+    without that key, the deepest press. The first stroke stops at the workspace floor.
     The first stroke aims at the family's target disk (``target_xy``, ``target_jitter``: contact within the first
     frames), later ones anywhere. Every stroke may be tilted
     (``tilt_deg``) and turned (``yaw_deg``, about the radial direction from the object's centre when
@@ -218,7 +219,7 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
     kind = STROKE_KINDS[int(rng.choice(len(STROKE_KINDS), p=weights / weights.sum()))]
     top = float(np.max(fam["speed"]))
     speed = top if kind == "plunge" else _uniform(rng, fam["speed"])
-    depth = _plunge_depth(rng, fam) if kind == "plunge" else _uniform(rng, fam["depth"])
+    depth = _stroke_depth(rng, fam, kind)
     tilt, azimuth, yaw = _uniform(rng, fam.get("tilt_deg", 0.0)), rng.uniform(0, 2 * np.pi), _uniform(
         rng, fam.get("yaw_deg", 0.0))
     centre = 0.5 * np.add(*scene.object_bbox())[:2]
@@ -262,13 +263,16 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
     path.hold(int(rng.integers(int(s_lo), int(s_hi) + 1)))
 
 
-def _plunge_depth(rng: np.random.Generator, fam: dict) -> float:
-    """A plunge's depth below the surface point hit, m: drawn from ``plunge_depth`` where the family gives it (down
-    to the workspace floor, deeper than any press), else the deepest press. Scenes without the key draw nothing, so
-    their sequences stay as they were."""
-    if "plunge_depth" in fam:
-        return _uniform(rng, fam["plunge_depth"])
-    return float(np.max(fam["depth"]))
+def _stroke_depth(rng: np.random.Generator, fam: dict, kind: str) -> float:
+    """A stroke's depth below the surface point hit, m. A plunge's is drawn from ``plunge_depth`` where the family
+    gives it (down to the workspace floor, deeper than any press), else it is the deepest press; a drag's from
+    ``drag_depth`` where given (slices as deep as the workspace), else from ``depth`` like a press. Scenes without
+    those keys draw exactly as before, so their sequences stay as they were."""
+    if kind == "plunge":
+        return _uniform(rng, fam["plunge_depth"]) if "plunge_depth" in fam else float(np.max(fam["depth"]))
+    if kind == "drag" and "drag_depth" in fam:
+        return _uniform(rng, fam["drag_depth"])
+    return _uniform(rng, fam["depth"])
 
 
 def _retract(scene: Scene, path: _Path, speed: float, along_axis: bool) -> None:
