@@ -162,6 +162,27 @@ def test_step_limits_come_from_the_training_family(scene):
                                                                                                              0.01)
 
 
+def test_the_correction_budget_comes_from_the_scene_and_an_explicit_one_wins(scene):
+    """cylinder_banana asks for 24 correction passes before the fallback (its deep drags need them: the scene
+    TOML); other scenes keep the default 12; a bad value is refused by name."""
+    import dataclasses
+
+    from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS
+    from colgnn_core.runtime.predictor import correction_iterations
+    from colgnn_core.scenes import load_scene
+
+    assert correction_iterations(load_scene("cylinder_banana", "ci")) == 24
+    assert correction_iterations(scene) == DEFAULT_MAX_ITERATIONS == 12
+    assert _pred(scene).corrector.max_iterations == 12
+    asking = dataclasses.replace(scene, config={**scene.config, "correction": {"max_iterations": 30}})
+    assert _pred(asking).corrector.max_iterations == 30
+    assert _pred(asking, max_iterations=5).corrector.max_iterations == 5
+    for bad in (-1, 2.5, True, "24"):
+        wrong = dataclasses.replace(scene, config={**scene.config, "correction": {"max_iterations": bad}})
+        with pytest.raises(InputError, match="correction.max_iterations must be an integer >= 0"):
+            _pred(wrong)
+
+
 def test_large_jump_is_split_into_model_steps(scene):
     p = _pred(scene, "static")
     start = p.tool_pose

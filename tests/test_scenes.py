@@ -181,15 +181,26 @@ def test_contact_height_on_the_flat_mat():
     assert np.isnan(contact_height(s, np.array([1.0, 1.0]), q))  # nothing below
 
 
-def test_the_glued_mat_s_shape_follows_the_sphere_s_pose_not_its_path():
-    """sphere_mat is a pad glued to a table under a smooth sphere: pressing straight down at P, or pressing at Q and
-    dragging to P, gives the same mat (the quasi-static, state-free model relies on it). Loose on the ground or with
-    friction 0.3 the two differ by 16.8 mm where the dent is 10.4 mm deep (measured); here by 0.4 mm. The glued
-    layer never moves."""
+# (scene, P, Q, bound): the largest vertex distance allowed between the two paths' shapes, as a fraction of the dent.
+# Measured at ci: sphere_mat 0.4 mm for a 10.4 mm dent (friction 0.3 or loose: 16.8 mm); cylinder_banana pushed
+# sideways 3.3 mm for 12.2 mm (glued along its bottom line only: 15.8 mm, the tube tipped over), dragged along its
+# length 0.9 mm for 9.9 mm (bottom line only: 10.3 mm).
+GLUED_PATHS = [
+    ("sphere_mat", (0.03, 0.0), (-0.03, 0.0), 0.1),
+    ("cylinder_banana", (0.0, -0.012), (0.0, 0.004), 0.4),
+    ("cylinder_banana", (0.03, -0.008), (-0.03, -0.008), 0.15),
+]
+
+
+@pytest.mark.parametrize("name,p,q,bound", GLUED_PATHS)
+def test_a_glued_object_s_shape_follows_the_tool_s_pose_not_its_path(name, p, q, bound):
+    """sphere_mat (a pad) and cylinder_banana (a banana in a cradle) are glued to a table under a smooth tool:
+    pressing straight down at P, or pressing at Q and dragging to P, gives nearly the same shape (the quasi-static,
+    state-free model relies on it; measured values at GLUED_PATHS). The glued band never moves."""
     from colgnn_core.scenes.hard_cases import press_pose
     from colgnn_core.sim.dataset import simulate_sequence
 
-    scene = load_scene("sphere_mat", "ci")
+    scene = load_scene(name, "ci")
     rest = np.asarray(scene.tool_rest_pose, dtype=np.float64)
 
     def path(*stops: np.ndarray, n: int = 8) -> np.ndarray:
@@ -198,13 +209,12 @@ def test_the_glued_mat_s_shape_follows_the_sphere_s_pose_not_its_path():
             out += [out[-1] + (stop - out[-1]) * k / n for k in range(1, n + 1)]
         return np.asarray(out)
 
-    p, q = (0.03, 0.0), (-0.03, 0.0)
     at_p, at_q = press_pose(scene, 0.6, xy=p), press_pose(scene, 0.6, xy=q)
     above_p = np.concatenate([p, rest[2:]])
     straight = simulate_sequence(scene, path(above_p, at_p)).object_positions
     dragged = simulate_sequence(scene, path(np.concatenate([q, rest[2:]]), at_q, at_p)).object_positions
     dent = np.linalg.norm(straight[-1] - straight[0], axis=1).max()
     assert dent > 3e-3  # a real press: millimetres deep
-    assert np.linalg.norm(dragged[-1] - straight[-1], axis=1).max() < 0.1 * dent
+    assert np.linalg.norm(dragged[-1] - straight[-1], axis=1).max() < bound * dent
     glued = dragged[:, scene.pinned]
     assert len(scene.pinned) and np.array_equal(glued, np.broadcast_to(glued[0], glued.shape))

@@ -169,6 +169,15 @@ def _family_limits(scene_name: str, resolution: str, seeds: int = 3, frames: int
     return trans, max(rot, MIN_ROTATION_STEP)
 
 
+def correction_iterations(scene) -> int:
+    """Correction passes before the fallback for ``scene``: its TOML's ``[correction] max_iterations``, else
+    DEFAULT_MAX_ITERATIONS. InputError when the value is not an integer >= 0."""
+    value = scene.config.get("correction", {}).get("max_iterations", DEFAULT_MAX_ITERATIONS)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise InputError(f"{scene.name}: correction.max_iterations must be an integer >= 0, got {value!r}")
+    return value
+
+
 def tool_step_limits(scene, extra: dict | None = None) -> tuple[float, float]:
     """(max translation m, max rotation rad) of the tool in one model step in the training distribution.
 
@@ -226,7 +235,8 @@ class Predictor:
         correction: run the collision-aware correction (False: the raw network, still validated/subdivided).
         max_substeps: most model steps one ``step`` call may take for a large jump.
         threads: torch intra-op threads (set process-wide).
-        max_iterations: correction passes before the safe fallback.
+        max_iterations: correction passes before the safe fallback; default the scene's
+            ``[correction] max_iterations`` (:func:`correction_iterations`).
         step_limits: (max translation m, max rotation rad) per model step; default from the
             checkpoint / scene family (:func:`tool_step_limits`).
         max_displacement, max_deviation: optional caps on the raw network output (see
@@ -257,7 +267,7 @@ class Predictor:
     """
 
     def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
-                 threads: int | None = 2, max_iterations: int = DEFAULT_MAX_ITERATIONS,
+                 threads: int | None = 2, max_iterations: int | None = None,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
                  max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0,
                  self_contact: bool = False, warm_up: bool = False, interior: str = "elastic"):
@@ -296,6 +306,8 @@ class Predictor:
         self.surface_faces = np.asarray(scene.object.faces, dtype=np.int64)
         self.surface_vertex_ids = np.unique(self.surface_faces)
         self.tool_faces = np.asarray(scene.tool.faces, dtype=np.int64)
+        if max_iterations is None:
+            max_iterations = correction_iterations(scene)
         self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
                                              max_iterations=max_iterations) if self.correction else None)
         self.self_contact = (SelfContact(tpl.surface_faces, tpl.num_object_nodes, self.net.rest.numpy())
