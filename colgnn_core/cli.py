@@ -116,7 +116,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_rollout(args: argparse.Namespace) -> int:
     _, poses = read_poses_csv(args.poses)
     seq = rollout(args.checkpoint or args.scene, poses, correction=not args.no_correction, limits=args.limits,
-                  progress=not args.quiet)
+                  progress=not args.quiet, predictor_options={"self_contact": args.self_contact})
     save_sequence(args.out, seq)
     print(f"wrote {args.out}: {seq.frames} frames")
     return 0
@@ -178,7 +178,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate(args.scene, checkpoint=args.checkpoint, data_dir=args.data, out_dir=args.out,
                       correction_modes=("raw",) if args.no_correction else ("raw", "corrected"),
                       exact=not args.no_exact, max_sequences=args.max_sequences, progress=not args.quiet,
-                      command=args.invocation)
+                      command=args.invocation, self_contact=args.self_contact)
     print(format_markdown(result))
     print("wrote " + ", ".join(result["files"].values()))
     return 0
@@ -340,7 +340,15 @@ def _add_rollout(sub) -> None:
                    help="the raw network, without the collision-aware correction")
     p.add_argument("--limits", choices=("none", "data"), default="none",
                    help="'data': cap per-step motion and distance from rest by the training data's extremes (counted)")
+    _add_self_contact(p, "with the correction")
     p.add_argument("--quiet", action="store_true")
+
+
+def _add_self_contact(p: argparse.ArgumentParser, what: str) -> None:
+    """``--self-contact`` / ``--no-self-contact``: the Predictor's self-contact stage; absent: the scene's default."""
+    p.add_argument("--self-contact", action=argparse.BooleanOptionalAction, default=None,
+                   help=f"run the Predictor's self-contact stage, or not ({what}); default: the scene's "
+                        "[correction] self_contact, as the node runs it")
 
 
 def _add_bench(sub) -> None:
@@ -355,8 +363,7 @@ def _add_bench(sub) -> None:
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
     p.add_argument("--compile", action="store_true", help="torch.compile the network first (faster steps)")
-    p.add_argument("--self-contact", action="store_true",
-                   help="also run the self-contact stage (off by default; its time is self_contact_ms)")
+    _add_self_contact(p, "its time is self_contact_ms")
     p.add_argument("--collision", action="store_true",
                    help="instead: collision detection (broad + filter + narrow) vs ipctk's CCD on one contact step")
     p.add_argument("--resolution", default="full", help="with --collision: scene resolution (full or ci)")
@@ -386,6 +393,7 @@ def _add_evaluate(sub) -> None:
     p.add_argument("--no-exact", action="store_true", help="crossings by the narrow phase instead of the exact CCD")
     p.add_argument("--no-correction", action="store_true", help="evaluate the raw network only")
     p.add_argument("--max-sequences", type=_positive, default=None, help="only the first N test sequences")
+    _add_self_contact(p, "in every corrected rollout")
     p.add_argument("--quiet", action="store_true", help="no per-sequence lines")
     p.add_argument("--frontier", action="store_true",
                    help="instead: speed against error of --checkpoints (raw and corrected) and the IPC solver "

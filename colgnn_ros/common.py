@@ -32,8 +32,8 @@ from __future__ import annotations
 import os
 import signal
 import sys
-from collections.abc import Callable, MutableMapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, MutableMapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import rclpy
@@ -85,6 +85,7 @@ class ParamSpec:
     range: tuple[float, float] | None = None
     choices: tuple[str, ...] | None = None
     read_only: bool = True
+    default_text: str | None = None  # the help's words for a default computed per scene (declare_parameters)
 
     @property
     def py_type(self) -> type:
@@ -119,8 +120,14 @@ def _override_value(node: Node, name: str) -> object:
     return "?" if p is None else p.value
 
 
-def declare_parameters(node: Node, specs: Sequence[ParamSpec]) -> dict[str, ParamValue]:
+def declare_parameters(node: Node, specs: Sequence[ParamSpec],
+                       defaults: Mapping[str, Callable[[dict[str, ParamValue]], ParamValue]] | None = None,
+                       ) -> dict[str, ParamValue]:
     """Declare ``specs`` on ``node`` with descriptors; return ``{name: value}``.
+
+    ``defaults``: for some names, the default computed from the values declared before them (in ``specs`` order),
+    e.g. a scene's own setting; the declared parameter then holds what runs (``ros2 param get`` shows it). The
+    computed default must have the spec's type.
 
     Raises InputError naming the parameter for a wrong type, a value out of range or not among the
     choices. Overrides for names the node does not declare are logged as a warning (a shared
@@ -135,6 +142,8 @@ def declare_parameters(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Para
                                   f"this node's parameters: {', '.join(names)}")
     values: dict[str, ParamValue] = {}
     for s in specs:
+        if defaults and s.name in defaults:
+            s = replace(s, default=s.py_type(defaults[s.name](values)))
         try:
             value = node.declare_parameter(s.name, s.default, s.descriptor()).value
         except InvalidParameterTypeException:
@@ -155,7 +164,8 @@ def format_help(prog: str, summary: str, specs: Sequence[ParamSpec]) -> str:
     lines = [f"usage: {prog} [--ros-args -p NAME:=VALUE ...]", "", summary, "", "parameters:"]
     for s in specs:
         extra = s.constraint_text()
-        lines.append(f"  {s.name} ({s.type_name}, default {s.default!r}{'; ' + extra if extra else ''})")
+        default = s.default_text or repr(s.default)
+        lines.append(f"  {s.name} ({s.type_name}, default {default}{'; ' + extra if extra else ''})")
         lines.append(f"      {s.description}")
     return "\n".join(lines)
 

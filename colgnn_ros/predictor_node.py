@@ -49,8 +49,8 @@ from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import validate_pose
 from colgnn_core.runtime.models import shipped_checkpoint
-from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor, auto_threads
-from colgnn_core.scenes import scene_names
+from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor, auto_threads, self_contact_default
+from colgnn_core.scenes import load_scene, scene_names
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS, ParamSpec, declare_parameters, run_node
 from msg_tools.conversions import (COLLISION_COUNT_LABELS, NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array,
                                    stamp_to_ns)
@@ -95,14 +95,19 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "of the way back to its rest shape per step (the objects are elastic; a learned model drifts instead); "
               "0 disables", range=(0.0, 0.99)),
     ParamSpec("self_contact", False, "also keep the object from passing through itself and its surface valid (no "
-              "flipped or torn faces; docs/COLLISION_GUARANTEE.md). Off by default: not yet real-time (tens of ms "
-              "a step)"),
+              "flipped or torn faces; docs/COLLISION_GUARANTEE.md). Default: the scene's [correction] self_contact "
+              "(on for sphere_mat and cylinder_banana, whose models' steps are valid surfaces, so the stage is "
+              "cheap; off where it costs tens of ms a step)", default_text="the scene's [correction] self_contact"),
     ParamSpec("compile", True, "torch.compile the network at start-up (~1.8x faster GNN step; a few seconds with "
               "torch's disk cache, which make setup warms, 10-30 s without); falls back to eager with a warning"),
     ParamSpec("foxglove_port", 0, "live view: serve the mesh, the tool and the collision counts to the Foxglove app "
               "on ws://127.0.0.1:PORT (Foxglove SDK WebSocket; pip install foxglove-sdk); 0: off",
               range=(0, 65535)),
 )
+
+
+#: Parameters whose default is the scene's own setting (from the ``scene`` parameter, declared before them).
+SCENE_DEFAULTS = {"self_contact": lambda values: self_contact_default(load_scene(str(values["scene"]), "full"))}
 
 
 class PredictorNode(Node):
@@ -116,7 +121,7 @@ class PredictorNode(Node):
         started = time.monotonic()
         super().__init__(NODE_NAME, **node_kwargs)
         try:
-            self.params = p = declare_parameters(self, PARAMETERS)
+            self.params = p = declare_parameters(self, PARAMETERS, defaults=SCENE_DEFAULTS)
             if not p["frame_id"].strip():
                 raise InputError("parameter 'frame_id' must not be empty")
             self.predictor = self._load_predictor(p)

@@ -99,6 +99,46 @@ def test_tool_and_material_arguments():
         parse_material("1e5,0.5,1000")
 
 
+def _voxel_mesh(mask: np.ndarray, h: float):
+    """A real tet mesh of the filled cells of ``mask`` [nx,ny,nz] (cubes of side h m, 6 tets each, conforming)."""
+    from itertools import permutations
+
+    from colgnn_core.geometry.tetmesh import TetMesh
+
+    n = np.array(mask.shape) + 1
+    ids = lambda i, j, k: (i * n[1] + j) * n[2] + k  # noqa: E731
+    grid = np.stack(np.meshgrid(*(np.arange(m) for m in n), indexing="ij"), -1).reshape(-1, 3) * h
+    tets = []
+    for i, j, k in zip(*np.nonzero(mask)):
+        for order in permutations(range(3)):  # the 6 tets along the cube's main diagonal
+            c, path = np.array([i, j, k]), [ids(i, j, k)]
+            for axis in order:
+                c = c + np.eye(3, dtype=int)[axis]
+                path.append(ids(*c))
+            tets.append(path)
+    used, tets = np.unique(np.array(tets), return_inverse=True)
+    return TetMesh.from_tets(grid[used], tets.reshape(-1, 4), orient=True)
+
+
+def test_an_object_on_separate_feet_is_held_up_to_where_they_join():
+    """`scene new` glues an object standing on feet (a cow on its legs) up to where they join, as a stand would:
+    free, the stiff cow's body tipped 6 mm sideways under a 4 mm press. A table of 1 cm cubes, legs 2 cm high under
+    a 3 cm top: its legs join at the top's underside, 2 cm; a slab and an arch whose feet join only above half its
+    height keep the plain band."""
+    from colgnn_core.scenes.custom import feet_height
+
+    table = np.zeros((5, 1, 5), bool)
+    table[[0, 4], :, :2] = True
+    table[:, :, 2:] = True
+    assert feet_height(_voxel_mesh(table, 0.01), 0.002) == pytest.approx(0.02)
+    slab = np.ones((4, 2, 2), bool)
+    assert feet_height(_voxel_mesh(slab, 0.01), 0.002) == 0.002
+    tall = np.zeros((5, 1, 7), bool)
+    tall[[0, 4], :, :6] = True
+    tall[:, :, 6] = True  # legs join at 6 of 7 cm: not feet, a shape (an arch); the band is glued
+    assert feet_height(_voxel_mesh(tall, 0.01), 0.002) == 0.002
+
+
 # ----------------------------------------------------------------------------- end to end
 
 def test_scene_new_writes_a_derived_scene_that_every_command_finds():
@@ -113,6 +153,10 @@ def test_scene_new_writes_a_derived_scene_that_every_command_finds():
     assert cfg["tool"]["radius"] == pytest.approx(0.015, rel=1e-3)          # 0.15 x the longest side
     assert cfg["object"]["pin_height"] > 0 and "ground" not in cfg          # no --ground: the bottom is glued
     assert cfg["family"]["region"] == "surface"
+    # Glued: the quasi-static recipe of the glued mat and banana, its coarse level sized per resolution.
+    m = cfg["model"]
+    assert m["quasi_static"] and m["order"] == 0 and (m["latent"], m["message_passing_steps"]) == (16, 2)
+    assert 8 <= m["ci"]["coarse_nodes"] < m["full"]["coarse_nodes"] <= 128 and m["coarse_steps"] == 4
     assert 0 < cfg["dhat"] <= 1e-3 * np.linalg.norm([0.1, 0.0667, 0.05]) + 1e-9
     listed = own.colgnn("scenes", "--json", "--resolution", "ci")
     assert listed.returncode == 0, listed.stderr
@@ -189,6 +233,15 @@ def test_fit_trains_evaluates_and_reports_within_its_budget():
     assert sum(plan["shares_s"].values()) <= 60 * own.FIT_MINUTES
     # The budget is a plan, measured on a shared machine: allow the evaluation's overrun, not a runaway.
     assert wall < 60 * own.FIT_MINUTES * 3
+    # The TOML's [model] table is what was trained, with the variant that suits it.
+    from colgnn_core.learn.registry import load_checkpoint
+    from colgnn_core.scenes.scene import build_scene, read_config_file
+    cfg = tomllib.loads((d / "pebble.toml").read_text())["model"]
+    scene = build_scene(own.NAME, "ci", read_config_file(d / "pebble.toml"), base_dir=d)
+    trained = load_checkpoint(d / "pebble.pt", scene)
+    assert trained.meta.variant == "baseline" and trained.config.quasi_static
+    assert (trained.config.latent, trained.config.message_passing_steps, trained.config.coarse_nodes) == (
+        cfg["latent"], cfg["message_passing_steps"], cfg["ci"]["coarse_nodes"])
     metrics = json.loads((d / "pebble-fit" / "ci" / "eval" / "metrics.json").read_text())
     assert metrics["relative"]["rest"]["all"]["mean"] == pytest.approx(1.0)
     assert metrics["rows"]["corrected"]["collisions"]["intersecting_frames"] == 0

@@ -183,6 +183,28 @@ def test_the_correction_budget_comes_from_the_scene_and_an_explicit_one_wins(sce
             _pred(wrong)
 
 
+def test_the_self_contact_default_comes_from_the_scene_and_an_explicit_one_wins(scene):
+    """sphere_mat and cylinder_banana turn the self-contact stage on (their models' steps are valid surfaces, so it is
+    cheap: the scene TOMLs); the others leave it off; an explicit choice wins; a bad value is refused by name."""
+    import dataclasses
+
+    from colgnn_core.runtime.predictor import self_contact_default
+    from colgnn_core.scenes import load_scene, scene_names
+
+    assert {n: self_contact_default(load_scene(n, "ci")) for n in scene_names()} == {
+        "cone_bunny": False, "knife_torus": False, "sphere_mat": True, "cylinder_banana": True}
+    assert _pred(scene).self_contact is None
+    asking = dataclasses.replace(scene, config={**scene.config, "correction": {"self_contact": True}})
+    assert _pred(asking).self_contact is not None
+    assert _pred(asking, self_contact=False).self_contact is None
+    assert _pred(scene, self_contact=True).self_contact is not None
+    assert _pred(asking, correction=False).self_contact is None  # the stage needs the tool pass
+    for bad in (1, "true", 0.0):
+        wrong = dataclasses.replace(scene, config={**scene.config, "correction": {"self_contact": bad}})
+        with pytest.raises(InputError, match="correction.self_contact must be true or false"):
+            _pred(wrong)
+
+
 def test_large_jump_is_split_into_model_steps(scene):
     p = _pred(scene, "static")
     start = p.tool_pose

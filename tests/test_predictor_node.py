@@ -100,8 +100,26 @@ def test_parameters_have_descriptors_and_dt_comes_from_the_checkpoint(ros, check
         assert n._timer.timer_period_ns == round(n.dt * 1e9)
         assert n.predictor.correction and n.predictor.max_substeps == 16
         assert n.predictor.rest_relaxation == RECOMMENDED_REST_RELAXATION == n.get_parameter("rest_relaxation").value
+        assert n.get_parameter("self_contact").value is False and n.predictor.self_contact is None  # cone_bunny's
     finally:
         n.destroy_node()
+
+
+def test_self_contact_defaults_to_the_scene_s_setting_and_an_override_wins(ros):
+    """sphere_mat's TOML turns the self-contact stage on: the declared parameter says so (what runs is what
+    `ros2 param get` shows), and self_contact:=false turns it off."""
+    from colgnn_ros.common import format_help
+
+    ctx, _, _ = ros
+    for extra, expected in (({}, True), ({"self_contact": False}, False)):
+        values = dict(scene="sphere_mat", threads=1, compile=False, **extra)
+        n = PredictorNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+        try:
+            assert n.get_parameter("self_contact").value is expected
+            assert (n.predictor.self_contact is not None) is expected
+        finally:
+            n.destroy_node()
+    assert "self_contact (bool, default the scene's [correction] self_contact)" in format_help("p", "", PARAMETERS)
 
 
 @pytest.mark.parametrize("name, value, message", [

@@ -41,7 +41,7 @@ from colgnn_core.evaluation.render import save_png
 from colgnn_core.io import atomic_write, ensure_writable_dir, load_sequence
 from colgnn_core.learn.data import load_checked_sequence
 from colgnn_core.runtime.models import load_model, rest_baseline
-from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION
+from colgnn_core.runtime.predictor import RECOMMENDED_REST_RELAXATION, self_contact_default
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import scene_names
 
@@ -76,7 +76,7 @@ def _rmse_summary(curves: list[np.ndarray]) -> dict:
 
 def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evaluate",
              correction_modes=MODES, exact: bool = True, max_sequences: int | None = None,
-             progress: bool = True, command: str | None = None) -> dict:
+             progress: bool = True, command: str | None = None, self_contact: bool | None = None) -> dict:
     """Evaluate a model on the test sequences of ``data_dir`` and write the reports into ``out_dir``.
 
     Args:
@@ -88,6 +88,8 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         correction_modes: any of 'raw', 'corrected'.
         exact: exact CCD oracle for the crossings (False: the project's narrow phase).
         max_sequences: evaluate only the first N test sequences.
+        self_contact: the Predictor's self-contact stage in every corrected rollout (the model's, the node's
+            defaults and ``rest + correction``); None: the scene's default, as the node runs it.
 
     Returns:
         The content of ``metrics.json`` (with 'files': the paths written).
@@ -107,6 +109,8 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         raise InputError(f"checkpoint is for scene {loaded.meta.scene!r}, not {scene_name!r}")
     scene = loaded.meta.load_scene()
     files = test_files(data_dir, scene)
+    self_contact = self_contact_default(scene) if self_contact is None else bool(self_contact)
+    options = {"self_contact": self_contact}
     if max_sequences is not None:
         files = files[:max_sequences]
     out = ensure_writable_dir(out_dir)
@@ -129,7 +133,8 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         for mode in modes:
             t0 = time.perf_counter()
             seq = rollout(loaded, gt.tool_poses, correction=(mode == "corrected"), scene=scene,
-                          initial_positions=gt.object_positions[0])
+                          initial_positions=gt.object_positions[0],
+                          predictor_options=options if mode == "corrected" else None)
             t_roll = time.perf_counter() - t0
             finite = bool(np.isfinite(seq.object_positions).all())
             if not finite:
@@ -147,7 +152,7 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
                          "surface": surface_checks(seq.object_positions, gt.object_faces, validity),
                          "step_ms_median": stats(seq.extra["step_ms"][1:], empty=0.0)["median"],
                          "rollout_s": t_roll, "metrics_s": time.perf_counter() - t0}
-        rec["relative"] = _relative_errors(loaded, scene, gt, {m: rec[m].pop("positions") for m in modes})
+        rec["relative"] = _relative_errors(loaded, scene, gt, {m: rec[m].pop("positions") for m in modes}, options)
         per_sequence.append(rec)
         if progress:
             parts = [f"{mode} RMSE all {rec[mode]['rmse_all']:.2e}, N_vf {rec[mode]['collisions']['N_vf_total']:.0f}"
@@ -169,6 +174,7 @@ def evaluate(scene_name: str, checkpoint=None, data_dir=None, out_dir="out/evalu
         "data_dir": str(data_dir),
         "exact": bool(exact),
         "modes": list(modes),
+        "self_contact": self_contact,
         "sequences": [p.name for p in files],
         "frames": [int(r["frames"]) for r in per_sequence],
         "bbox_diagonal": float(diagonal),
@@ -197,18 +203,22 @@ def surface_checks(positions: np.ndarray, faces: np.ndarray, validity: SurfaceVa
             "invalid_face_frames": int(sum(bool(validity.invalid(positions[t]).any()) for t in frames))}
 
 
-def _relative_errors(loaded, scene, gt, positions: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+def _relative_errors(loaded, scene, gt, positions: dict[str, np.ndarray],
+                     options: dict | None = None) -> dict[str, dict[str, float]]:
     """Relative displacement error (all vertices, contact region) of one test sequence for every RELATIVE_ROWS row:
     the model's rollouts ``positions`` (mode -> [T,N,3]), the node's defaults and the two trivial baselines, each
-    started from the ground truth's frame 0 (the settled rest)."""
+    started from the ground truth's frame 0 (the settled rest). ``options``: more Predictor settings of every
+    corrected rollout (the self-contact stage)."""
+    options = options or {}
     truth = gt.object_positions
     rest = truth[0]
     runs = dict(positions)
     runs["node"] = rollout(loaded, gt.tool_poses, correction=True, scene=scene, initial_positions=rest, limits="data",
-                           predictor_options={"rest_relaxation": RECOMMENDED_REST_RELAXATION}).object_positions
+                           predictor_options={"rest_relaxation": RECOMMENDED_REST_RELAXATION, **options}
+                           ).object_positions
     runs["rest"] = np.repeat(rest[None], len(truth), axis=0)
     runs["rest_correction"] = rollout(rest_baseline(loaded, scene), gt.tool_poses, correction=True, scene=scene,
-                                      initial_positions=rest).object_positions
+                                      initial_positions=rest, predictor_options=options).object_positions
     ids = contact_region(truth, rest)
     return {row: relative_errors(p, truth, ids) for row, p in runs.items()}
 
@@ -239,7 +249,8 @@ def format_markdown(result: dict) -> str:
              f"Checkpoint `{result['checkpoint']}` (variant {result['variant']}), "
              f"{len(result['sequences'])} test sequence(s) from `{result['data_dir']}` "
              f"({min(result['frames'])}–{max(result['frames'])} frames), bbox diagonal "
-             f"{result['bbox_diagonal']:.4f} m, {'exact CCD oracle' if result['exact'] else 'narrow-phase CCD'}.", "",
+             f"{result['bbox_diagonal']:.4f} m, {'exact CCD oracle' if result['exact'] else 'narrow-phase CCD'}, "
+             f"self-contact stage {'on' if result.get('self_contact') else 'off'} in the corrected rollouts.", "",
              "RMSE: % of the bbox diagonal, mean ± std over sequences. N_vf, N_ee: crossings per step; "
              "d: depth on the wrong side at t+1 (mm), mean over all crossing pairs and max. "
              "Intersecting frames: frames with any penetration.", ""]

@@ -48,7 +48,8 @@ def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
 
 
 def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
-          correction: bool = True, progress: bool = False, compile: bool = False, self_contact: bool = False) -> dict:
+          correction: bool = True, progress: bool = False, compile: bool = False,
+          self_contact: bool | None = None) -> dict:
     """Benchmark one scene. Returns the JSON fields of the ``colgnn bench`` contract.
 
     Args:
@@ -57,7 +58,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         frames: trajectory length including the rest frame (≥ 3).
         threads: torch threads of the Predictor (the solver uses numpy/scipy's own).
         compile: torch.compile the network first (see :class:`~colgnn_core.runtime.predictor.Predictor`).
-        self_contact: also run the self-contact stage (its time is ``self_contact_ms``; 0 when off).
+        self_contact: run the self-contact stage (its time is ``self_contact_ms``; 0 when off); None: the
+            scene's default, as the node runs it (:func:`~colgnn_core.runtime.predictor.self_contact_default`).
     """
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")

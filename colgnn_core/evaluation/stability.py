@@ -137,12 +137,13 @@ def check_rollout(pred, poses: np.ndarray, check_every: int = 1) -> dict:
 
 def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, seed: int = 0,
               check_every: int = 10, memory_every: int = 250, threads: int = 2, compile: bool = False,
-              limits: str = "none", rest_relaxation: float = 0.0, self_contact: bool = False,
+              limits: str = "none", rest_relaxation: float = 0.0, self_contact: bool | None = None,
               progress: bool = True) -> dict:
     """Run the long rollout (see the module docstring) and return a JSON-ready report.
 
     ``limits``: output caps of the Predictor ('none' or 'data', see :meth:`Predictor.from_checkpoint`);
-    ``rest_relaxation``, ``self_contact``: see :class:`~colgnn_core.runtime.predictor.Predictor`."""
+    ``rest_relaxation``, ``self_contact`` (None: the scene's default): see
+    :class:`~colgnn_core.runtime.predictor.Predictor`."""
     if steps < 1 or settle < 1 or check_every < 1 or memory_every < 1:
         raise InputError("steps, settle, check_every and memory_every must be >= 1")
     pred = Predictor.from_checkpoint(checkpoint_or_scene, threads=threads, compile=compile, limits=limits,
@@ -191,7 +192,7 @@ def stability(checkpoint_or_scene, *, steps: int = 10_000, settle: int = 300, se
         "scene": scene.name, "resolution": scene.resolution, "checkpoint": str(checkpoint_or_scene),
         "random_steps": steps, "leave_and_settle_steps": len(poses) - 1 - steps, "seed": seed,
         "threads": pred.threads, "compiled": pred.compiled, "limits": limits, "rest_relaxation": rest_relaxation,
-        "self_contact": self_contact,
+        "self_contact": pred.self_contact is not None,
         "relaxed_steps": pred.relaxed_steps, **counts,
         "step_ms_median": step["median"], "step_ms_p95": step["p95"],
         "rss_mb_start": float(mb[0]), "rss_mb_end": float(mb[-1]), "rss_mb_per_1000_steps": slope,

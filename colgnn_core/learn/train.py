@@ -54,12 +54,9 @@ from colgnn_core.scenes import load_scene
 VARIANTS = ("full", "baseline", "no-compact", "subspace")
 GNN_VARIANTS = ("full", "baseline", "no-compact")
 
-# Model size for training on a small CPU. Measured on the full-resolution scenes (3-6k graph nodes, 1 thread, shared
-# 2-core machine): 128/15/2 (the scene TOMLs) ~6.4 s per training step and ~1.9 s per prediction; 64/5/1 0.45-1.1 s
-# per step; 32/3/1 0.13-0.29 s per step. 32/5/1 allows ~10-25k steps in 90 minutes.
-DEFAULT_MODEL = {"latent": 32, "message_passing_steps": 5, "mlp_layers": 1}
-
-
+# Model sizes come from the scene's [model] table (32/5/1 in the built-in scenes, sized for a small CPU: on the
+# full-resolution scenes, 3-6k graph nodes, 1 thread, 128/15/2 took ~6.4 s per training step, 64/5/1 0.45-1.1 s,
+# 32/3/1 0.13-0.29 s), unless TrainConfig.model or `colgnn train --model` overrides them.
 @dataclass
 class TrainConfig:
     """Training settings (saved in the checkpoint; a resumed run uses the saved ones).
@@ -88,7 +85,9 @@ class TrainConfig:
     symmetry: bool = False            # turn each sample by a random symmetry of the scene (learn.symmetry)
     checkpoint_every: int = 500
     log_every: int = 25
-    model: dict = field(default_factory=lambda: dict(DEFAULT_MODEL))  # overrides of the scene's [model] table
+    # Overrides of the scene's [model] table; empty: the table decides (a user's `scene new` TOML, edited by hand,
+    # is what `colgnn fit` trains).
+    model: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)

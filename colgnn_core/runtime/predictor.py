@@ -57,8 +57,8 @@ from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.hard_cases import press_pose
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 
-__all__ = ["Predictor", "PredictorState", "StepResult", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS",
-           "RECOMMENDED_REST_RELAXATION"]
+__all__ = ["Predictor", "PredictorState", "StepResult", "correction_iterations", "self_contact_default",
+           "tool_step_limits", "DEFAULT_MAX_SUBSTEPS", "RECOMMENDED_REST_RELAXATION"]
 
 DEFAULT_MAX_SUBSTEPS = 16
 WARM_UP_DEPTH = 0.3  # Predictor.warm_up: a fraction of the way from the surface to the deepest valid pose
@@ -178,6 +178,17 @@ def correction_iterations(scene) -> int:
     return value
 
 
+def self_contact_default(scene) -> bool:
+    """Whether the Predictor runs the self-contact stage for ``scene`` unless told otherwise: its TOML's
+    ``[correction] self_contact``, else False. A scene turns it on where its shipped model's steps are valid surfaces,
+    so that the stage stays cheap (it repairs rarely); on a model that tears, the stage costs tens of ms a step.
+    InputError when the value is not a boolean."""
+    value = scene.config.get("correction", {}).get("self_contact", False)
+    if not isinstance(value, bool):
+        raise InputError(f"{scene.name}: correction.self_contact must be true or false, got {value!r}")
+    return value
+
+
 def tool_step_limits(scene, extra: dict | None = None) -> tuple[float, float]:
     """(max translation m, max rotation rad) of the tool in one model step in the training distribution.
 
@@ -261,16 +272,16 @@ class Predictor:
             (:meth:`warm_up`): the first real pose then meets no lazy compilation (numba's kernels on a fresh
             clone, torch's specialisations). The node does this; a fresh clone's first start takes ~25 s longer.
         self_contact: run the self-contact stage after the tool pass (with ``correction``): the published object
-            never passes through itself and its surface stays valid (docs/COLLISION_GUARANTEE.md). Off by default:
-            it costs far more than its 3 ms budget today (tens of ms a step, seconds on a torn drag; see
-            docs/STATUS.md), so the real-time node runs it only when asked (``self_contact:=true``).
+            never passes through itself and its surface stays valid (docs/COLLISION_GUARANTEE.md). Default (None):
+            the scene's ``[correction] self_contact`` (:func:`self_contact_default`), on where the shipped model's
+            steps are valid surfaces and the stage is cheap; on a model that tears it costs tens of ms a step.
     """
 
     def __init__(self, loaded, scene, *, correction: bool = True, max_substeps: int = DEFAULT_MAX_SUBSTEPS,
                  threads: int | None = 2, max_iterations: int | None = None,
                  step_limits: tuple[float, float] | None = None, max_displacement: float | None = None,
                  max_deviation: float | None = None, compile: bool = False, rest_relaxation: float = 0.0,
-                 self_contact: bool = False, warm_up: bool = False, interior: str = "elastic"):
+                 self_contact: bool | None = None, warm_up: bool = False, interior: str = "elastic"):
         if max_substeps < 1:
             raise InputError(f"max_substeps must be >= 1, got {max_substeps}")
         if not 0.0 <= rest_relaxation < 1.0:
@@ -310,6 +321,8 @@ class Predictor:
             max_iterations = correction_iterations(scene)
         self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
                                              max_iterations=max_iterations) if self.correction else None)
+        if self_contact is None:
+            self_contact = self_contact_default(scene)
         self.self_contact = (SelfContact(tpl.surface_faces, tpl.num_object_nodes, self.net.rest.numpy())
                              if self.corrector is not None and self_contact else None)
         self.state: PredictorState | None = None
