@@ -96,8 +96,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "0 disables", range=(0.0, 0.99)),
     ParamSpec("self_contact", False, "also keep the object from passing through itself and its surface valid (no "
               "flipped or torn faces; docs/COLLISION_GUARANTEE.md). Default: the scene's [correction] self_contact "
-              "(on for sphere_mat and cylinder_banana, whose models' steps are valid surfaces, so the stage is "
-              "cheap; off where it costs tens of ms a step)", default_text="the scene's [correction] self_contact"),
+              "(on for sphere_mat, whose model's steps are valid surfaces, so the stage costs ~1 ms; off where it "
+              "would take the step past the 20 ms budget)", default_text="the scene's [correction] self_contact"),
     ParamSpec("compile", True, "torch.compile the network at start-up (~1.8x faster GNN step; a few seconds with "
               "torch's disk cache, which make setup warms, 10-30 s without); falls back to eager with a warning"),
     ParamSpec("foxglove_port", 0, "live view: serve the mesh, the tool and the collision counts to the Foxglove app "

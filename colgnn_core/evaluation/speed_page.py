@@ -20,9 +20,11 @@ def speed_row(r: dict) -> str:
     t, g, n, c = r["total_ms"], r["graph_ms"], r["gnn_ms"], r["correction_ms"]
     rel = r.get("relative_displacement_error")
     rel_text = "–" if rel is None else f"{rel:.2f}"
+    self_text = (f"{r['self_contact_ms']['median']:.1f} ({r['self_contact_ms']['p95']:.1f}) ms"
+                 if r.get("self_contact") else "off")
     return (f"| `{r['scene']}` ({r['resolution']}) | {r['surface_vertices']:,} / {r['edges']:,} / {r['faces']:,} | "
             f"**{t['median']:.1f}** ({t['p95']:.1f}) ms | {g['median']:.1f} / {n['median']:.1f} / "
-            f"{c['median']:.1f} ms | {r['ipc_ms']['median']:,.0f} ms | **{r['speedup_vs_ipc']:.0f}×** | "
+            f"{c['median']:.1f} ms | {self_text} | {r['ipc_ms']['median']:,.0f} ms | **{r['speedup_vs_ipc']:.0f}×** | "
             f"{r['crossings_before_correction']} → {r['crossings_after_correction']} | {rel_text} | "
             f"{r['load_average_1min']:.1f} |")
 
@@ -34,10 +36,11 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
     first = results[0]
     settings = (f"{first['frames'] - 1} steps of each scene's family trajectory, {first['threads']} torch thread(s), "
                 f"{'compiled' if first.get('compiled') else 'eager'} network, correction "
-                f"{'on' if first['correction'] else 'off'}")
-    header = ("| scene | surface V / E / F | step median (p95) | graph / GNN / correction (median) | IPC solver "
-              "(median) | speedup | crossings before → after correction | relative displacement error | load |")
-    table = "\n".join([header, "|---|---|---:|---|---:|---:|---|---:|---:|", *(speed_row(r) for r in results)])
+                f"{'on' if first['correction'] else 'off'}, the self-contact stage where its column gives a time")
+    header = ("| scene | surface V / E / F | step median (p95) | graph / GNN / correction (median) | self-contact "
+              "stage, median (p95) | IPC solver (median) | speedup | crossings before → after correction | relative "
+              "displacement error | load |")
+    table = "\n".join([header, "|---|---|---:|---|---:|---:|---:|---|---:|---:|", *(speed_row(r) for r in results)])
     return (f"# Speed\n\n{provenance_line(command, load)}\n\n"
             f"`colgnn bench`: the Predictor (GNN step + collision-aware correction) and the project's IPC solver on "
             f"the same poses, one after the other in the same run, {settings}. Raw results: [bench/](bench). This page "
