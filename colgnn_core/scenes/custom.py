@@ -256,10 +256,12 @@ def derive_config(name: str, surface: SurfaceImport, meshes: dict[str, TetMesh],
             z = np.sort(mesh.vertices[:, 2])
             pin = max(pin, float(z[min(2, len(z) - 1)] - z[0]) + 1e-6)
         # An object on separate feet (a cow on its legs) is held by them up to where they join, as on a stand:
-        # free, its body tips sideways and swings under a press on top (the stiff cow: 6 mm sideways for a 4 mm
-        # press, the side set by which flank of the back the tool meets, still swinging 3 frames after the tool
-        # left), which a model of the shape as a function of the tool's pose cannot learn (docs/OWN_OBJECT.md).
-        pin = max(pin, max(feet_height(mesh, pin) for mesh in (ci, full)) + 1e-6)
+        # free, its body tips sideways and swings under a press on top (the stiff cow: 5-6 mm sideways for a 4 mm
+        # press, the side set by which flank of the back the tool meets, swinging past rest after the tool left),
+        # which a model of the shape as a function of the tool's pose cannot learn (docs/OWN_OBJECT.md).
+        feet = max(feet_height(mesh, pin) for mesh in (ci, full))
+        if feet > pin:
+            pin = feet + 1e-6  # the vertices at the joining level are glued too
         support = {"pin_height": round(pin, 6)}
         support_top, ground_cfg = pin, None
     top = float(hi[2]) + (support_top if ground else 0.0)
