@@ -179,26 +179,50 @@ def test_ground_friction_gradient_matches_finite_differences():
 
 
 def test_pcg_solves_the_newton_system_like_a_factorisation_or_hands_it_over():
-    """The Newton system's solver: CG (Jacobi) to PCG_RTOL on an SPD system like the simulator's (mass-dominated
+    """The Newton system's CG: Jacobi-preconditioned to PCG_RTOL on an SPD system like the simulator's (mass-dominated
     diagonal plus a stiff coupled block); None where CG cannot (a non-positive diagonal, or too few iterations), so
-    that the simulator falls back to its Cholesky factorisation."""
+    that the caller factorises instead."""
     import scipy.sparse as sp
 
-    from colgnn_core.sim import ipc
+    from colgnn_core.sim.linear_solve import pcg_solve
 
     rng = np.random.default_rng(0)
     n = 300
     a = sp.random(n, n, density=0.02, random_state=1)
     h = (a @ a.T * 50.0 + sp.eye(n) * 2.0).tocsr()  # SPD, far from diagonal
     r = rng.normal(size=n)
-    x = ipc.pcg_solve(h, r)
+    x = pcg_solve(h, r)
     assert x is not None
     np.testing.assert_allclose(x, np.linalg.solve(h.toarray(), r), rtol=0, atol=1e-6 * np.abs(x).max())
-    assert np.array_equal(ipc.pcg_solve(h, np.zeros(n)), np.zeros(n))
-    assert ipc.pcg_solve(h - sp.eye(n) * 10.0, r) is None  # a non-positive diagonal entry: not for CG
-    old = ipc.PCG_MAX_ITERATIONS
-    try:
-        ipc.PCG_MAX_ITERATIONS = 2
-        assert ipc.pcg_solve(h, r) is None  # not converged: the factorisation takes over
-    finally:
-        ipc.PCG_MAX_ITERATIONS = old
+    assert np.array_equal(pcg_solve(h, np.zeros(n)), np.zeros(n))
+    assert pcg_solve(h - sp.eye(n) * 10.0, r) is None  # a non-positive diagonal entry: not for CG
+    assert pcg_solve(h, r, max_iterations=2) is None  # not converged: the factorisation takes over
+
+
+def _chain(n: int, shift: float):
+    """A stiff 1-D chain: the Laplacian of n nodes plus ``shift`` on the diagonal (condition number ~ 4 / shift)."""
+    import scipy.sparse as sp
+
+    return (sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]) + shift * sp.eye(n)).tocsr()
+
+
+def test_the_newton_solver_factorises_a_stiff_system_once_and_reuses_the_factor():
+    """A system too stiff for Jacobi CG (a long chain: a stiff object's Hessian has the same trouble) is factorised
+    once; the next systems of the same free set, nearby in value, are solved by CG preconditioned with that lagged
+    factor, every one to PCG_RTOL. A mass-dominated system never factorises."""
+    from colgnn_core.sim.linear_solve import PCG_RTOL, NewtonSystemSolver
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    solver = NewtonSystemSolver()
+    for k in range(4):
+        h = _chain(n, 1e-6 * (1.0 + 0.3 * k))  # condition ~ 4e6: CG would need thousands of Jacobi iterations
+        r = rng.normal(size=n)
+        x = solver.solve(h, r, key=n)
+        assert np.linalg.norm(h @ x - r) <= 10 * PCG_RTOL * np.linalg.norm(r)
+    assert solver.jacobi_failed and solver.factorisations == 1
+    soft = NewtonSystemSolver()
+    h = _chain(n, 5.0)  # the mass term dominates
+    x = soft.solve(h, np.ones(n), key=n)
+    assert np.linalg.norm(h @ x - 1.0) <= 10 * PCG_RTOL * np.sqrt(n)
+    assert not soft.jacobi_failed and soft.factorisations == 0

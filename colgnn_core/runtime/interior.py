@@ -24,11 +24,11 @@ from collections import OrderedDict
 from collections.abc import Callable
 
 import numpy as np
-import scipy.sparse as sp
 
 from colgnn_core.errors import InputError
 from colgnn_core.learn.graph import GraphTemplate, lift_to_mesh
 from colgnn_core.sim.elasticity import StableNeoHookean
+from colgnn_core.sim.linear_solve import cholesky_solver
 
 __all__ = ["INTERIOR_KINDS", "ElasticInterior", "check_interior_kind", "interior_lift"]
 
@@ -59,7 +59,7 @@ class ElasticInterior:
         fi, ki = _dofs(self.free), _dofs(self.known)
         rows = h[fi]
         self._h_fk = rows[:, ki].tocsr()
-        self._solve = _factorise(rows[:, fi].tocsr())
+        self._solve = cholesky_solver(rows[:, fi].tocsr())
 
     def __call__(self, x_graph: np.ndarray) -> np.ndarray:
         """Every mesh vertex [N_mesh,3] (m) for graph-node positions ``x_graph`` [N,3]."""
@@ -73,27 +73,6 @@ class ElasticInterior:
 
 def _dofs(ids: np.ndarray) -> np.ndarray:
     return (3 * ids[:, None] + np.arange(3)).reshape(-1)
-
-
-def _factorise(h: sp.csr_matrix) -> Callable[[np.ndarray], np.ndarray]:
-    """A solver for ``h x = b`` (h symmetric positive definite): cholespy's Cholesky, else scipy's LU."""
-    h.sum_duplicates()
-    try:
-        import cholespy
-
-        chol = cholespy.CholeskySolverD(h.shape[0], h.indptr.astype(np.int32), h.indices.astype(np.int32),
-                                        h.data.astype(np.float64), cholespy.MatrixType.CSR)
-
-        def solve(b: np.ndarray) -> np.ndarray:
-            x = np.zeros_like(b)
-            chol.solve(np.ascontiguousarray(b), x)
-            return x
-
-        return solve
-    except (ImportError, ValueError, RuntimeError):  # no cholespy, or it refused the matrix
-        from scipy.sparse.linalg import splu
-
-        return splu(h.tocsc()).solve
 
 
 def check_interior_kind(kind: str) -> str:

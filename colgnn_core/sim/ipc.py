@@ -33,11 +33,11 @@ contact) and by a tet-inversion guard, then halved until the energy decreases.
 * κ: ``ipctk.initial_barrier_stiffness`` at every step (kept if the previous step's κ
   is larger), then ``ipctk.update_barrier_stiffness`` after every Newton iteration.
 * Stop when ‖p‖_∞ < newton_tol · bbox_diagonal · h (IPC's rule).
-* The Newton system is solved by conjugate gradients with a Jacobi preconditioner to a relative residual of
-  PCG_RTOL, and by a sparse Cholesky factorisation (cholespy) when that does not converge within PCG_MAX_ITERATIONS.
-  The mass term M/h² makes the projected Hessian strongly diagonal: on full-resolution knife_torus steps CG needs
-  ~200 iterations (0.2 s) where the factorisation took 1.4 s, 64% of a step. The converged state is the same to the
-  Newton tolerance: only the search directions differ (relative 1e-5).
+* The Newton system is solved by conjugate gradients with a Jacobi preconditioner, and once that fails, by CG
+  preconditioned with a lagged sparse Cholesky factor, refreshed when it stops converging (``sim.linear_solve``).
+  On the soft scenes the mass term M/h² makes the projected Hessian strongly diagonal and Jacobi CG always
+  converges; on the stiff bunny it does not. The converged state is the same to the Newton tolerance: only the
+  search directions differ (relative 1e-5).
 
 **Driving the kinematic tool.** The tool's surface vertices are extra degrees of
 freedom. Phase 1 pulls them towards their targets with a stiff mass-weighted quadratic
@@ -78,16 +78,7 @@ import scipy.sparse as sp
 from colgnn_core.errors import SimulationError
 from colgnn_core.geometry.transforms import interpolate_poses, validate_pose
 from colgnn_core.sim.elasticity import StableNeoHookean, lumped_mass
-
-try:  # CHOLMOD-based; about 2x faster than scipy's SuperLU here
-    import cholespy
-
-    _HAVE_CHOLESPY = True
-except ImportError:  # pragma: no cover - cholespy is in requirements
-    _HAVE_CHOLESPY = False
-
-PCG_RTOL = 1e-9            # CG stops at ||H p - r|| <= PCG_RTOL ||r||
-PCG_MAX_ITERATIONS = 1000  # then the Cholesky factorisation solves it instead
+from colgnn_core.sim.linear_solve import NewtonSystemSolver
 
 _DEBUG = bool(os.environ.get("COLGNN_SIM_DEBUG"))  # print every Newton iteration (developer aid)
 _SETTLE_CACHE: dict = {}  # settled frame-0 object positions per (scene, mesh, tool pose, solver options)
@@ -141,18 +132,6 @@ class StepStats:
     # (object [N,3], tool [M,3]) of the intermediate states the frame's motion passes through when its straight
     # frame-to-frame motion is not collision-free (see IPCSimulator.step); empty when it is.
     path: tuple = ()
-
-
-def pcg_solve(h: sp.spmatrix, r: np.ndarray) -> np.ndarray | None:
-    """Solve the SPD system h x = r by Jacobi-preconditioned conjugate gradients; None when CG does not reach
-    PCG_RTOL within PCG_MAX_ITERATIONS (or the diagonal is not positive): the caller factorises instead."""
-    import scipy.sparse.linalg as spla  # lazy: scipy's solvers are only needed by the simulator
-
-    d = h.diagonal()
-    if not np.all(d > 0) or not np.any(r):
-        return np.zeros_like(r) if not np.any(r) and np.all(d > 0) else None
-    x, info = spla.cg(h, r, rtol=PCG_RTOL, maxiter=PCG_MAX_ITERATIONS, M=sp.diags(1.0 / d))
-    return x if info == 0 and np.all(np.isfinite(x)) else None
 
 
 class IPCSimulator:
@@ -282,6 +261,7 @@ class IPCSimulator:
         """Back to frame 0: object at rest (settled under gravity if enabled), tool at its initial pose."""
         self.frame = 0
         self.kappa = 0.0
+        self.linear = NewtonSystemSolver()  # fresh per run: a sequence's result does not depend on the one before
         self.tool_pose = self.initial_tool_pose.copy()
         self.x = np.vstack([self.rest, self.tool.world_vertices(self.tool_pose)])
         self.v = np.zeros((self.n_obj, 3))
@@ -520,7 +500,7 @@ class IPCSimulator:
 
     # ================================================================== Newton
     def _solve(self, h: sp.csr_matrix, rhs: np.ndarray, free: np.ndarray) -> np.ndarray:
-        """Solve H p = rhs on the free DOFs (p = 0 elsewhere); sparse Cholesky."""
+        """Solve H p = rhs on the free DOFs (p = 0 elsewhere): CG or sparse Cholesky (``sim.linear_solve``)."""
         idx = np.flatnonzero(free)
         if len(idx) == h.shape[0]:
             hf = h
@@ -529,29 +509,8 @@ class IPCSimulator:
         else:
             hf = h[idx][:, idx]
         p = np.zeros_like(rhs)
-        r = np.ascontiguousarray(rhs[idx])
-        out = pcg_solve(hf, r)
-        if out is not None:
-            p[idx] = out
-            return p
-        if _HAVE_CHOLESPY:
-            hf = hf.tocsr()
-            hf.sum_duplicates()
-            try:
-                solver = cholespy.CholeskySolverD(
-                    hf.shape[0], hf.indptr.astype(np.int32), hf.indices.astype(np.int32), hf.data,
-                    cholespy.MatrixType.CSR
-                )
-                out = np.zeros_like(r)
-                solver.solve(r, out)
-                if np.all(np.isfinite(out)):
-                    p[idx] = out
-                    return p
-            except (ValueError, RuntimeError):
-                pass
-        import scipy.sparse.linalg as spla  # lazy: the fallback solver, only without cholespy or when it fails
-
-        p[idx] = spla.spsolve(hf.tocsc(), r)
+        # The free set differs only in the tool's DOFs (free in phase 1): its size names it.
+        p[idx] = self.linear.solve(hf, np.ascontiguousarray(rhs[idx]), len(idx))
         return p
 
     def _free_mask(self, tool_free: bool) -> np.ndarray:
