@@ -261,14 +261,31 @@ def test_predictor_starts_from_and_relaxes_toward_the_settled_rest():
 
 
 def test_predictor_flags_a_tool_pose_far_from_the_training_poses():
+    """The tool criterion alone (the deviation record removed; the tiny model's own shape can stray): its training
+    trajectory is never flagged, and the same trajectory against a record 5 cm off is."""
     scene = fx.scene()
     loaded = load_checkpoint(fx.trained_checkpoint("full"))
-    p = Predictor(loaded, scene, threads=1)
+    tool_only = {k: v for k, v in loaded.extra.items() if k != "domain_max_deviation"}
+    p = Predictor(replace(loaded, extra=tool_only), scene, threads=1)
     contact = sample_poses(scene, split_seeds("train", 1)[0], fx.FRAMES)
     res = [p.step(pose) for pose in contact[1:]]
     assert sum(r.out_of_domain for r in res) == 0 and p.state.out_of_domain == 0
-    # the same trajectory, with a training record that puts every training pose 5 cm away
-    far = dict(loaded.extra, domain_tool_positions=loaded.extra["domain_tool_positions"] + 0.05)
+    far = dict(tool_only, domain_tool_positions=loaded.extra["domain_tool_positions"] + 0.05)
     q = Predictor(replace(loaded, extra=far), scene, threads=1)
     res = [q.step(pose) for pose in contact[1:]]
     assert sum(r.out_of_domain for r in res) > 0 and q.state.out_of_domain == sum(r.out_of_domain for r in res)
+
+
+def test_predictor_flags_a_shape_beyond_the_training_deformation():
+    """The deviation criterion alone (the tool record removed): a step is flagged when the object is farther from its
+    settled rest than DOMAIN_DEVIATION_FACTOR x the training data's largest deviation, and only then."""
+    scene = fx.scene()
+    loaded = load_checkpoint(fx.trained_checkpoint("full"))
+    assert loaded.extra["domain_max_deviation"] > 1e-3  # the training data's dents are millimetres deep
+    contact = sample_poses(scene, split_seeds("train", 1)[0], fx.FRAMES)
+    flags = {}
+    for dev in (1e-5, 10.0):  # metres: below every dent, and far beyond any
+        extra = {k: v for k, v in loaded.extra.items() if k != "domain_tool_positions"}
+        p = Predictor(replace(loaded, extra=dict(extra, domain_max_deviation=dev)), scene, threads=1)
+        flags[dev] = sum(p.step(pose).out_of_domain for pose in contact[1:])
+    assert flags[10.0] == 0 and flags[1e-5] > 0

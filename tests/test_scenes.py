@@ -181,22 +181,25 @@ def test_contact_height_on_the_flat_mat():
     assert np.isnan(contact_height(s, np.array([1.0, 1.0]), q))  # nothing below
 
 
-# (scene, P, Q, bound): the largest vertex distance allowed between the two paths' shapes, as a fraction of the dent.
-# Measured at ci: sphere_mat 0.4 mm for a 10.4 mm dent (friction 0.3 or loose: 16.8 mm); cylinder_banana pushed
-# sideways 3.3 mm for 12.2 mm (glued along its bottom line only: 15.8 mm, the tube tipped over), dragged along its
-# length 0.9 mm for 9.9 mm (bottom line only: 10.3 mm).
+# (scene, P, Q, depth, bound): the largest vertex distance allowed between the two paths' shapes, as a fraction of
+# the dent, pressing ``depth`` of the way to the workspace floor. Measured at ci: sphere_mat 0.4 mm for a 10.4 mm dent
+# (friction 0.3 or loose: 16.8 mm); cylinder_banana pushed sideways 3.3 mm for 12.2 mm (glued along its bottom line
+# only: 15.8 mm, the tube tipped over), dragged along its length 0.9 mm for 9.9 mm (bottom line only: 10.3 mm);
+# cone_bunny stabbed 19 mm into the back and dragged 3 cm, 1.6 mm (at 100 kPa instead of 1 MPa: 9.8 mm, 0.54).
 GLUED_PATHS = [
-    ("sphere_mat", (0.03, 0.0), (-0.03, 0.0), 0.1),
-    ("cylinder_banana", (0.0, -0.012), (0.0, 0.004), 0.4),
-    ("cylinder_banana", (0.03, -0.008), (-0.03, -0.008), 0.15),
+    ("sphere_mat", (0.03, 0.0), (-0.03, 0.0), 0.6, 0.1),
+    ("cylinder_banana", (0.0, -0.012), (0.0, 0.004), 0.6, 0.4),
+    ("cylinder_banana", (0.03, -0.008), (-0.03, -0.008), 0.6, 0.15),
+    ("cone_bunny", (0.03, -0.02), (0.0, -0.02), 0.15, 0.15),
 ]
 
 
-@pytest.mark.parametrize("name,p,q,bound", GLUED_PATHS)
-def test_a_glued_object_s_shape_follows_the_tool_s_pose_not_its_path(name, p, q, bound):
-    """sphere_mat (a pad) and cylinder_banana (a banana in a cradle) are glued to a table under a smooth tool:
-    pressing straight down at P, or pressing at Q and dragging to P, gives nearly the same shape (the quasi-static,
-    state-free model relies on it; measured values at GLUED_PATHS). The glued band never moves."""
+@pytest.mark.parametrize("name,p,q,depth,bound", GLUED_PATHS)
+def test_a_glued_object_s_shape_follows_the_tool_s_pose_not_its_path(name, p, q, depth, bound):
+    """sphere_mat (a pad), cylinder_banana (a banana in a cradle) and cone_bunny (a stiff rubber bunny) are glued to a
+    table under a frictionless tool: pressing straight down at P, or pressing at Q and dragging to P, gives nearly the
+    same shape (the quasi-static, state-free model relies on it; measured values at GLUED_PATHS). The glued band
+    never moves."""
     from colgnn_core.scenes.hard_cases import press_pose
     from colgnn_core.sim.dataset import simulate_sequence
 
@@ -209,7 +212,7 @@ def test_a_glued_object_s_shape_follows_the_tool_s_pose_not_its_path(name, p, q,
             out += [out[-1] + (stop - out[-1]) * k / n for k in range(1, n + 1)]
         return np.asarray(out)
 
-    at_p, at_q = press_pose(scene, 0.6, xy=p), press_pose(scene, 0.6, xy=q)
+    at_p, at_q = press_pose(scene, depth, xy=p), press_pose(scene, depth, xy=q)
     above_p = np.concatenate([p, rest[2:]])
     straight = simulate_sequence(scene, path(above_p, at_p)).object_positions
     dragged = simulate_sequence(scene, path(np.concatenate([q, rest[2:]]), at_q, at_p)).object_positions
