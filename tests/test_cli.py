@@ -101,10 +101,15 @@ def test_train_model_options_reach_the_checkpoint(tmp_path, capsys):
     out = tmp_path / "qs.pt"
     assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(out), "--steps", "3",
                  "--variant", "baseline", "--model", "8/1/1", "--quiet", "--threads", "1",
-                 "--model-options", '{"order": 0, "quasi_static": true, "coarse_nodes": 8, "coarse_steps": 1}']) == 0
-    cfg = load_checkpoint(out).simulator.config
+                 "--model-options", '{"order": 0, "quasi_static": true, "coarse_nodes": 8, "coarse_steps": 1, '
+                 '"global_modes": 4}']) == 0
+    sim = load_checkpoint(out).simulator
+    cfg = sim.config
     assert (cfg.order, cfg.quasi_static, cfg.latent, cfg.message_passing_steps) == (0, True, 8, 1)
-    assert (cfg.coarse_nodes, cfg.coarse_steps) == (8, 1)
+    assert (cfg.coarse_nodes, cfg.coarse_steps, cfg.global_modes) == (8, 1, 4)
+    # the modes were fitted to the training displacements and saved: each one a unit-RMS-coefficient field
+    norms = sim.global_modes.reshape(4, -1).norm(dim=1)
+    assert bool((norms > 0).all()) and norms[0] >= norms[-1]
     # the node's default (compiled) runs such a model: the warm-up keeps the coarse level's edges
     from colgnn_core.runtime.predictor import Predictor
 

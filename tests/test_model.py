@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 
+from colgnn_core.errors import InputError
 from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, make_mlp, sum_to_receivers
 from colgnn_core.learn.losses import kl_latent, loss_q
 from colgnn_core.learn.model import Frame, ModelConfig, Simulator
@@ -226,3 +227,33 @@ def test_split_first_edge_layer_equals_concatenated_form():
     torch.testing.assert_close(got, expect, rtol=1e-12, atol=1e-12)
     empty = EdgeSet(feats[:0], senders[:0], receivers[:0])
     assert edge_mlp_input(first, h, empty).shape == (0, 4)
+
+
+def test_global_modes_span_the_training_displacements_and_add_to_every_node():
+    sim, verts, tool = make_sim(order=0, quasi_static=True, global_modes=3)
+    z = verts[:, 2:3] - verts[:, 2].min()
+    bend = np.hstack([z ** 2, np.zeros_like(z), -0.1 * z])       # the whole box bending sideways
+    squash = np.hstack([np.zeros_like(z), np.zeros_like(z), -z])  # ... and squashed
+    frames = np.stack([a * bend + b * squash for a, b in [(0, 0), (1, 0), (0, 1), (2, 1), (-1, 3)]])
+    assert sim.set_global_modes(frames) == pytest.approx(1.0)
+    basis = sim.global_modes.reshape(3, -1).T.numpy()            # [3N, K]
+    for field in (bend, squash):
+        coef, *_ = np.linalg.lstsq(basis, field.ravel(), rcond=None)
+        np.testing.assert_allclose(basis @ coef, field.ravel(), atol=1e-12)
+
+    f = make_frame(verts, tool)
+    sim.training_outputs(f, f.x_t)  # fill the normalizers
+    last = sim.global_head[-1]
+    with torch.no_grad():  # the head says "one unit of mode 0", whatever the latents
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([1.0, 0.0, 0.0]))
+    pred_norm, latents = sim.network(sim.build_graph(f))
+    added = (pred_norm - sim.core.decode(latents)).double() * sim.output_normalizer.std()
+    torch.testing.assert_close(added, sim.global_modes[0], rtol=1e-5, atol=1e-9)
+    assert bool((added.norm(dim=1)[z[:, 0] > 0] > 0).all())      # every node off the base, near the tool or not
+
+    copy = Simulator(sim.template, sim.config)
+    copy.load_state_dict(sim.state_dict())                         # the modes travel with the weights
+    torch.testing.assert_close(copy.global_modes, sim.global_modes)
+    with pytest.raises(InputError, match="global_modes needs order 0"):
+        make_sim(order=2, global_modes=3)

@@ -139,6 +139,16 @@ class FrameDataset:
         frame, x_next = frame_from_sequence(template, seq.object_positions, seq.tool_positions, seq.tool_poses, t)
         return frame, x_next, np.asarray(seq.tool_poses[t])
 
+    def displacements(self, nodes: np.ndarray, rest: np.ndarray, max_frames: int = 4000) -> np.ndarray:
+        """Every frame's displacement of the given mesh nodes from ``rest`` [N,3] (m): [F,N,3] float64.
+
+        With more than ``max_frames`` frames in all, an evenly spaced subset of them (memory: F x N x 24 bytes)."""
+        frames = [(s, t) for s, seq in enumerate(self.sequences) for t in range(seq.frames)]
+        if len(frames) > max_frames:
+            frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_frames).round().astype(int)]
+        rest = np.asarray(rest, dtype=np.float64)
+        return np.stack([self.sequences[s].object_positions[t][nodes] - rest for s, t in frames])
+
     def displacement_stats(self, nodes: np.ndarray, free: np.ndarray | None = None) -> dict[str, float]:
         """Per-frame displacement |x_{t+1} - x_t| (m) of the given mesh nodes over every transition.
 

@@ -26,7 +26,7 @@ from torch import nn
 
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
-from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, Pooling
+from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, Pooling, make_mlp
 from colgnn_core.learn.graph import (MESH_EDGE_FEATURES, WORLD_EDGE_FEATURES, GraphInputs, GraphTemplate,
                                      build_graph, coarse_edges, coarse_template)
 from colgnn_core.learn.normalizer import Normalizer
@@ -53,6 +53,10 @@ class ModelConfig:
     quasi_static: bool = False        # order 0 only: the graph is built on the settled rest, not on x_t, and every
                                       # object node also sees the tool (TOOL_FEATURES): the shape is a function of
                                       # the tool's pose and motion, so a rollout cannot drift or tear
+    global_modes: int = 0             # order 0 only: K whole-object displacement modes (PCA of the training
+                                      # displacements); a graph-level head reads the pooled latents and adds
+                                      # sum_k c_k * mode_k to every node's output, so a press can bend the whole
+                                      # object at once instead of through hop-limited messages (0: none)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -166,6 +170,9 @@ class Simulator(nn.Module):
             raise InputError("coarse_nodes and coarse_steps must both be > 0 (a coarse level) or both 0")
         if config.quasi_static and config.order != 0:
             raise InputError("quasi_static needs order 0 (the output is the displacement from the settled rest)")
+        if config.global_modes < 0 or (config.global_modes and config.order != 0):
+            raise InputError("global_modes needs order 0 (the modes are displacements from the settled rest) "
+                             f"and must be >= 0, got {config.global_modes} with order {config.order}")
         node_in = (template.node_feature_size + (3 if config.rest_feature else 0)
                    + (TOOL_FEATURES if config.quasi_static else 0))
         self.coarse = coarse_template(template, config.coarse_nodes) if config.coarse_nodes else None
@@ -182,6 +189,14 @@ class Simulator(nn.Module):
                                         message_passing_steps=config.message_passing_steps,
                                         mlp_layers=config.mlp_layers, coarse_edge_in=MESH_EDGE_FEATURES,
                                         coarse_steps=config.coarse_steps)
+        self.global_head = None
+        if config.global_modes:
+            # [K,N,3] metres per unit coefficient (set from the training data by set_global_modes). The head sees
+            # the mean and the max of the object latents; it is one small MLP per step, whatever N is.
+            self.register_buffer("global_modes",
+                                 torch.zeros((config.global_modes, template.rest.shape[0], 3), dtype=torch.float64))
+            self.global_head = make_mlp(2 * config.latent, 4 * config.latent, config.global_modes,
+                                        max(2, config.mlp_layers), layer_norm=False)
 
     # -- pieces -----------------------------------------------------------------------------------------------
     @property
@@ -194,6 +209,25 @@ class Simulator(nn.Module):
         if rest.shape != self.settled_rest.shape:
             raise InputError(f"settled rest must be {tuple(self.settled_rest.shape)}, got {tuple(rest.shape)}")
         self.settled_rest.copy_(rest)
+
+    def set_global_modes(self, displacements) -> float:
+        """Fit the K global modes to training displacements from the settled rest [F,N,3] (m, F frames).
+
+        The modes are the leading right singular vectors of the [F,3N] displacement matrix (not centred: rest is
+        the natural origin), each scaled by its RMS coefficient over the frames, so the head's outputs are O(1).
+        Returns the fraction of the displacements' squared norm that the K modes keep."""
+        u = torch.as_tensor(displacements, dtype=torch.float64)
+        k, n = self.config.global_modes, self.global_modes.shape[1]
+        if u.ndim != 3 or u.shape[1:] != (n, 3):
+            raise InputError(f"global-mode displacements must be [F,{n},3], got {tuple(u.shape)}")
+        flat = u.reshape(u.shape[0], -1)
+        _, s, vt = torch.linalg.svd(flat, full_matrices=False)
+        kept = min(k, s.shape[0])
+        modes = torch.zeros_like(self.global_modes)
+        modes[:kept] = (vt[:kept] * (s[:kept, None] / max(u.shape[0], 1) ** 0.5)).reshape(kept, n, 3)
+        self.global_modes.copy_(modes)
+        total = float((s ** 2).sum())
+        return float((s[:kept] ** 2).sum()) / total if total > 0 else 1.0
 
     def build_graph(self, frame: Frame) -> GraphInputs:
         if self.config.quasi_static:
@@ -238,14 +272,24 @@ class Simulator(nn.Module):
         """Normalised output (acceleration or velocity) [N,3] and final processor latents [N,latent] of the
         object nodes."""
         graph, pooling = self.normalise_graph(g, accumulate)
-        return self.core_outputs(graph, g.num_object_nodes, pooling)
+        modes = None
+        if self.global_head is not None:  # the modes in output units: the output normalizer divides by its std
+            modes = (self.global_modes / self.output_normalizer.std()).float()
+        return self.core_outputs(graph, g.num_object_nodes, pooling, modes)
 
-    def core_outputs(self, graph: MultiGraph, num_object_nodes: int,
-                     pooling: Pooling | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Encode-process-decode a normalised graph: (outputs, final latents) of the object nodes."""
+    def core_outputs(self, graph: MultiGraph, num_object_nodes: int, pooling: Pooling | None = None,
+                     modes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Encode-process-decode a normalised graph: (outputs, final latents) of the object nodes.
+
+        ``modes`` [K,N,3] (normalised output units, float32): the global modes, weighted by the head's
+        coefficients and added to every node's output."""
         latent_graph = self.core.process(self.core.encode(graph), pooling)
         latents = latent_graph.node_features[:num_object_nodes]  # tool nodes need no decoding
-        return self.core.decode(latents), latents
+        out = self.core.decode(latents)
+        if modes is not None:
+            coefficients = self.global_head(torch.cat([latents.mean(0), latents.amax(0)]))
+            out = out + torch.einsum("k,knd->nd", coefficients, modes)
+        return out, latents
 
     def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
         """De-normalise the output and step: ``x_{t+1} = 2 x_t - x_{t-1} + a`` (order 2), ``x_t + v`` (order 1) or

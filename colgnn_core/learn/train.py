@@ -253,6 +253,11 @@ def _fresh_model(scene, dataset: FrameDataset, config: TrainConfig | None, steps
     sim = Simulator(template, mcfg)
     if sim.has_settled_rest:  # the quasi-static output and the rest feature refer to the ground truth's frame 0
         sim.set_settled_rest(dataset.sequences[0].object_positions[0][template.object_nodes])
+    if mcfg.global_modes:
+        if cfg.symmetry:
+            raise InputError("global_modes and symmetry augmentation cannot be combined: the modes are fitted to "
+                             "the unturned training displacements")
+        sim.set_global_modes(dataset.displacements(template.object_nodes, sim.settled_rest.numpy()))
     return _Model(cfg, template, sim, *_optimizer(sim, cfg))
 
 
