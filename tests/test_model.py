@@ -257,3 +257,30 @@ def test_global_modes_span_the_training_displacements_and_add_to_every_node():
     torch.testing.assert_close(copy.global_modes, sim.global_modes)
     with pytest.raises(InputError, match="global_modes needs order 0"):
         make_sim(order=2, global_modes=3)
+
+
+def test_contact_depth_sees_a_sharp_tool_between_the_nodes():
+    """A needle 10 mm under the box's top face, in the middle of a cell: the nearest nodes are 2.4 cm away, so the
+    SDF at the nodes says nothing; the tool-side depth reads the 10 mm."""
+    from colgnn_core.learn.model import CONTACT_FEATURES, RestSurface
+
+    verts, _, faces = box_tet_mesh()  # 0.1 x 0.1 x 0.067 m, nodes every 33 mm
+    top = verts[:, 2].max()
+    surface = RestSurface(verts, faces)
+    needle = np.array([[0.05, 0.05, top + 0.02 - 0.003 * k] for k in range(11)])  # tip 10 mm under the top
+    depth, point = surface.penetration(needle)
+    assert depth == pytest.approx(0.010, abs=1e-9) and point == pytest.approx(needle[-1])
+    depth, _ = surface.penetration(needle + [0.0, 0.0, 0.1])  # lifted off: minus the gap to the nearest node
+    assert depth == pytest.approx(-np.linalg.norm(needle[-1] + [0, 0, 0.1] - [0.1 / 3, 0.1 / 3, top]))
+    beside = np.array([[0.13, 0.05, 0.03]])                   # level with the side, outside: not under the surface
+    assert surface.penetration(beside)[0] < -0.02
+
+    sim, verts, tool = make_sim(order=0, quasi_static=True, contact_depth=True)
+    f = make_frame(verts, tool, centre=(0.05, 0.05, top + 0.02))
+    g = sim.build_graph(f)
+    feats = g.node_features[: sim.template.num_object_nodes, -CONTACT_FEATURES:]
+    expected, q = surface.penetration(f.tool_next.numpy())
+    torch.testing.assert_close(feats[:, 3], torch.full_like(feats[:, 3], expected))
+    torch.testing.assert_close(feats[:, :3], sim.settled_rest - torch.as_tensor(q))
+    with pytest.raises(InputError, match="contact_depth needs quasi_static"):
+        make_sim(contact_depth=True)

@@ -64,6 +64,19 @@ def surface_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit area-weighted vertex normals [N,3] of the triangles ``faces`` [F,3] (outward when the faces are);
+    vertices on no face get zeros."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    face_n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length: twice the area
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], face_n)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
 def check_closed_surface(vertices: np.ndarray, faces: np.ndarray, what: str = "surface") -> None:
     """Raise ValueError unless faces [F,3] form a closed, consistently outward, manifold surface.
 
