@@ -193,8 +193,9 @@ def test_model_cards_of_the_shipped_models_and_the_readme_table_match_the_files(
         ("cone_bunny", "full", "full", "16/3/1", 8000)
     assert bunny.sequences == 19 and bunny.options == {} and 300 < bunny.wall_s < 400
     shipped = cards["cone_bunny.pt"]
-    assert (shipped.variant, shipped.size, shipped.steps, shipped.sequences) == ("baseline", "16/2/1", 24000, 20)
-    assert shipped.options == {"order": 0, "coarse_nodes": 128, "coarse_steps": 4, "quasi_static": True}
+    assert (shipped.variant, shipped.size, shipped.steps, shipped.sequences) == ("baseline", "16/2/1", 24000, 38)
+    assert shipped.options == {"order": 0, "coarse_nodes": 128, "coarse_steps": 4, "quasi_static": True,
+                               "tip_prior": True}
     qs = cards["experiments/knife_torus_ci_quasi_static.pt"]
     assert qs.resolution == "ci" and qs.size == "64/4/2" and qs.sequences == 100
     assert qs.options == {"order": 0, "coarse_nodes": 32, "coarse_steps": 3, "quasi_static": True}

@@ -102,11 +102,12 @@ def test_train_model_options_reach_the_checkpoint(tmp_path, capsys):
     assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(out), "--steps", "3",
                  "--variant", "baseline", "--model", "8/1/1", "--quiet", "--threads", "1",
                  "--model-options", '{"order": 0, "quasi_static": true, "coarse_nodes": 8, "coarse_steps": 1, '
-                 '"global_modes": 4, "contact_depth": true}']) == 0
+                 '"global_modes": 4, "contact_depth": true, "tip_prior": true}']) == 0
     sim = load_checkpoint(out).simulator
     cfg = sim.config
     assert (cfg.order, cfg.quasi_static, cfg.latent, cfg.message_passing_steps) == (0, True, 8, 1)
     assert (cfg.coarse_nodes, cfg.coarse_steps, cfg.global_modes, cfg.contact_depth) == (8, 1, 4, True)
+    assert cfg.tip_prior
     # the modes were fitted to the training displacements and saved: each one a unit-RMS-coefficient field
     norms = sim.global_modes.reshape(4, -1).norm(dim=1)
     assert bool((norms > 0).all()) and norms[0] >= norms[-1]

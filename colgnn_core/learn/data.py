@@ -16,6 +16,7 @@ epoch (rank r of W takes stream positions ``step * W + r``).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -128,6 +129,17 @@ class FrameDataset:
         self.sequences = [load_checked_sequence(p, scene) for p in dataset_files(self.data_dir, split)]
         self.index = np.array([(s, t) for s, seq in enumerate(self.sequences) for t in range(seq.frames - 1)],
                               dtype=np.int64).reshape(-1, 2)
+        self.priors: list[np.ndarray] | None = None  # per sequence [T,N,3] float32 (m), see attach_priors
+
+    def attach_priors(self, prior_of: Callable[[SeqArrays], np.ndarray], progress: bool = False) -> None:
+        """Give every sample a physics prior: ``prior_of(sequence)`` [T,N,3] (m), computed once per sequence here
+        and kept as float32 (a prior may depend on the tool's path, so it is computed along whole sequences)."""
+        seqs = self.sequences
+        if progress:
+            from tqdm import tqdm  # lazy: an optional progress bar
+
+            seqs = tqdm(seqs, desc="tip prior", unit="seq")
+        self.priors = [np.asarray(prior_of(seq), dtype=np.float32) for seq in seqs]
 
     def __len__(self) -> int:
         return int(self.index.shape[0])
@@ -136,7 +148,9 @@ class FrameDataset:
         """``(frame, x_next [N,3], pose_t [7])`` of sample ``i`` (graph nodes of ``template``)."""
         s, t = (int(v) for v in self.index[i])
         seq = self.sequences[s]
-        frame, x_next = frame_from_sequence(template, seq.object_positions, seq.tool_positions, seq.tool_poses, t)
+        priors = None if self.priors is None else self.priors[s]
+        frame, x_next = frame_from_sequence(template, seq.object_positions, seq.tool_positions, seq.tool_poses, t,
+                                            priors)
         return frame, x_next, np.asarray(seq.tool_poses[t])
 
     def displacements(self, nodes: np.ndarray, rest: np.ndarray, max_frames: int = 4000) -> np.ndarray:

@@ -62,6 +62,9 @@ class ModelConfig:
     contact_depth: bool = False       # quasi_static only: every node also sees how deep the tool reaches under the
                                       # settled rest's surface, measured from the tool's side (CONTACT_FEATURES);
                                       # a sharp tool (cone, blade) between the nodes is otherwise nearly invisible
+    tip_prior: bool = False           # quasi_static only: a linear-elastic physics prior (sim.tip_prior: the sharp
+                                      # tool's tip carries a surface point) is added to the output and given to
+                                      # every node (PRIOR_FEATURES); the network learns the remainder
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -92,15 +95,17 @@ class Frame:
     tool_t: torch.Tensor     # [M,3] tool vertices (world) at t
     tool_next: torch.Tensor  # [M,3] at t+1
     pose_next: np.ndarray | None = None  # [7] tool pose at t+1 (SDF culling, collision losses)
+    prior: torch.Tensor | None = None    # [N,3] the physics prior's displacement at t+1 (m; models with tip_prior)
 
 
 def frame_from_sequence(template: GraphTemplate, object_positions: np.ndarray, tool_positions: np.ndarray,
-                        tool_poses: np.ndarray, t: int) -> tuple[Frame, torch.Tensor]:
+                        tool_poses: np.ndarray, t: int, priors: np.ndarray | None = None) -> tuple[Frame, torch.Tensor]:
     """The transition t -> t+1 of a sequence (arrays as in :class:`colgnn_core.io.Sequence`).
 
     ``object_positions`` [T,N_mesh,3] holds every mesh vertex; the graph's nodes
     are picked with ``template.object_nodes``. At t = 0 the object starts at
-    rest (x_{-1} = x_0). Returns ``(frame, x_next [N,3])``, float64 tensors.
+    rest (x_{-1} = x_0). ``priors`` [T,N,3]: the physics prior along the sequence (its frame t+1 goes into the
+    frame). Returns ``(frame, x_next [N,3])``, float64 tensors.
     """
     if not 0 <= t < object_positions.shape[0] - 1:
         raise ValueError(f"t={t} outside [0, {object_positions.shape[0] - 1})")
@@ -108,7 +113,8 @@ def frame_from_sequence(template: GraphTemplate, object_positions: np.ndarray, t
     pos = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
     x_t = pos(object_positions[t, nodes])
     x_prev = pos(object_positions[t - 1, nodes]) if t > 0 else x_t
-    frame = Frame(x_prev, x_t, pos(tool_positions[t]), pos(tool_positions[t + 1]), np.asarray(tool_poses[t + 1]))
+    frame = Frame(x_prev, x_t, pos(tool_positions[t]), pos(tool_positions[t + 1]), np.asarray(tool_poses[t + 1]),
+                  None if priors is None else pos(priors[t + 1]))
     return frame, pos(object_positions[t + 1, nodes])
 
 
@@ -198,6 +204,16 @@ def contact_features(surface: RestSurface, rest: torch.Tensor, tool_next: torch.
     return torch.cat([obj, rest.new_zeros((num_tool_nodes, CONTACT_FEATURES))], dim=0)
 
 
+PRIOR_FEATURES = 4  # per-node features of a model with tip_prior: the prior's displacement (3) and its length (1)
+
+
+def prior_features(prior: torch.Tensor, num_tool_nodes: int) -> torch.Tensor:
+    """[N+M, PRIOR_FEATURES]: per object node the prior's displacement ``prior`` [N,3] (m) and its length; tool
+    nodes get zeros."""
+    obj = torch.cat([prior, torch.linalg.vector_norm(prior, dim=1, keepdim=True)], dim=1)
+    return torch.cat([obj, prior.new_zeros((num_tool_nodes, PRIOR_FEATURES))], dim=0)
+
+
 @dataclass
 class TrainingOutputs:
     """What the losses need from one training frame (object nodes only)."""
@@ -227,11 +243,14 @@ class Simulator(nn.Module):
             raise InputError("quasi_static needs order 0 (the output is the displacement from the settled rest)")
         if config.contact_depth and not config.quasi_static:
             raise InputError("contact_depth needs quasi_static (the depth is measured under the settled rest)")
+        if config.tip_prior and not config.quasi_static:
+            raise InputError("tip_prior needs quasi_static (the prior is a displacement from the settled rest)")
         if config.global_modes < 0 or (config.global_modes and config.order != 0):
             raise InputError("global_modes needs order 0 (the modes are displacements from the settled rest) "
                              f"and must be >= 0, got {config.global_modes} with order {config.order}")
         node_in = (template.node_feature_size + (3 if config.rest_feature else 0)
-                   + (TOOL_FEATURES if config.quasi_static else 0) + (CONTACT_FEATURES if config.contact_depth else 0))
+                   + (TOOL_FEATURES if config.quasi_static else 0) + (CONTACT_FEATURES if config.contact_depth else 0)
+                   + (PRIOR_FEATURES if config.tip_prior else 0))
         self.coarse = coarse_template(template, config.coarse_nodes) if config.coarse_nodes else None
         self.node_normalizer = Normalizer(node_in)
         edge_sets = dict(EDGE_SETS, **({"coarse": MESH_EDGE_FEATURES} if self.coarse is not None else {}))
@@ -318,9 +337,18 @@ class Simulator(nn.Module):
         if self.config.contact_depth:
             feats = torch.cat([feats, contact_features(self.rest_surface(), rest, frame.tool_next,
                                                        self.template.num_tool_nodes)], dim=1)
+        if self.config.tip_prior:
+            feats = torch.cat([feats, prior_features(self._prior(frame).to(rest.dtype),
+                                                     self.template.num_tool_nodes)], dim=1)
         if self.coarse is not None:
             g = replace(g, coarse=coarse_edges(self.coarse, rest))
         return replace(g, node_features=feats)
+
+    def _prior(self, frame: Frame) -> torch.Tensor:
+        """The frame's prior [N,3]; InputError when a model with tip_prior gets a frame without one."""
+        if frame.prior is None:
+            raise InputError("this model adds the tip prior: the frame must carry it (Frame.prior, [N,3] m)")
+        return frame.prior
 
     def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> tuple[MultiGraph, Pooling | None]:
         """Normalise raw features (optionally accumulating statistics) and cast to the network's float32.
@@ -361,24 +389,33 @@ class Simulator(nn.Module):
             out = out + torch.einsum("k,knd->nd", coefficients, modes)
         return out, latents
 
-    def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
+    def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor,
+                  prior: torch.Tensor | None = None) -> torch.Tensor:
         """De-normalise the output and step: ``x_{t+1} = 2 x_t - x_{t-1} + a`` (order 2), ``x_t + v`` (order 1) or
-        ``X + u`` (order 0, X the settled rest); pinned nodes keep x_t."""
+        ``X + u`` (order 0, X the settled rest, plus the ``prior`` [N,3] for a model with tip_prior); pinned nodes
+        keep x_t."""
         out = self.output_normalizer.inverse(pred_norm.to(x_t.dtype))
-        x_next = self._base(x_t, x_prev) + out
+        x_next = self._base(x_t, x_prev, prior) + out
         if self.template.num_node_types == 3:
             x_next = torch.where(self.template.pinned[:, None], x_t, x_next)
         return x_next
 
-    def _base(self, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
-        """What the network's output is added to: 2 x_t - x_{t-1}, x_t or the rest X (order 2, 1, 0)."""
+    def _base(self, x_t: torch.Tensor, x_prev: torch.Tensor, prior: torch.Tensor | None = None) -> torch.Tensor:
+        """What the network's output is added to: 2 x_t - x_{t-1}, x_t or the rest X (order 2, 1, 0), the rest
+        plus the prior for a model with tip_prior."""
         if self.config.order == 0:
-            return self.settled_rest.to(x_t.dtype)
+            rest = self.settled_rest.to(x_t.dtype)
+            if self.config.tip_prior:
+                if prior is None:
+                    raise InputError("this model adds the tip prior: give it (Frame.prior, [N,3] m)")
+                return rest + prior.to(x_t.dtype)
+            return rest
         return x_t if self.config.order == 1 else 2.0 * x_t - x_prev
 
-    def decode_latent(self, z: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor) -> torch.Tensor:
+    def decode_latent(self, z: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor,
+                      prior: torch.Tensor | None = None) -> torch.Tensor:
         """Positions at t+1 decoded from latents ``z`` [N,latent] instead of the processor's (L_compact)."""
-        return self.integrate(self.core.decode(z), x_t, x_prev)
+        return self.integrate(self.core.decode(z), x_t, x_prev, prior)
 
     def compile_network(self) -> None:
         """Run :meth:`core_outputs` through ``torch.compile`` (inductor: fused C++ kernels, ~1.8x faster on a CPU).
@@ -394,7 +431,7 @@ class Simulator(nn.Module):
     def predict(self, frame: Frame) -> torch.Tensor:
         """Object graph-node positions at t+1 [N,3] (float64). Statistics are not updated."""
         pred_norm, _ = self.network(self.build_graph(frame))
-        return self.integrate(pred_norm, frame.x_t, frame.x_prev)
+        return self.integrate(pred_norm, frame.x_t, frame.x_prev, frame.prior)
 
     def training_outputs(self, frame: Frame, x_next: torch.Tensor, generator: torch.Generator | None = None,
                          noise: bool = True, accumulate: bool = True, random_latent: bool = False) -> TrainingOutputs:
@@ -410,18 +447,18 @@ class Simulator(nn.Module):
             eps = eps * free[:, None].to(x_t.dtype)
             x_t = x_t + eps
             target_pos = x_next + (1.0 - self.config.noise_gamma) * eps
-        noisy = Frame(frame.x_prev, x_t, frame.tool_t, frame.tool_next, frame.pose_next)
+        noisy = replace(frame, x_t=x_t)
         g = self.build_graph(noisy)
         pred_norm, latents = self.network(g, accumulate=accumulate)
-        target_accel = target_pos - self._base(x_t, frame.x_prev)
+        target_accel = target_pos - self._base(x_t, frame.x_prev, frame.prior)
         if accumulate:
             self.output_normalizer.accumulate(target_accel[free])
         target_norm = self.output_normalizer(target_accel).float()
-        x_next_pred = self.integrate(pred_norm, x_t, frame.x_prev)
+        x_next_pred = self.integrate(pred_norm, x_t, frame.x_prev, frame.prior)
         x_next_random = None
         if random_latent:
             z = torch.randn(latents.shape, generator=generator, dtype=latents.dtype)
-            x_next_random = self.decode_latent(z, x_t, frame.x_prev)
+            x_next_random = self.decode_latent(z, x_t, frame.x_prev, frame.prior)
         return TrainingOutputs(pred_norm, target_norm, free, latents, x_t, x_next_pred, x_next_random, g)
 
     def forward(self, frame: Frame, x_next: torch.Tensor | None = None, **kwargs):

@@ -339,7 +339,7 @@ class Predictor:
         """Call the network on the rest graph with 0, 1 and 2 world-edge pairs: every shape class the
         compiled network can meet (torch specialises sizes 0 and 1; 2 and up share one kernel)."""
         s = self.net.state
-        g = self.model.build_graph(Frame(s.x_t, s.x_t, s.tool_t, s.tool_t, s.pose))
+        g = self.model.build_graph(Frame(s.x_t, s.x_t, s.tool_t, s.tool_t, s.pose, torch.zeros_like(s.x_t)))
         n = g.num_object_nodes
         for pairs in (0, 1, 2):
             send = torch.tensor([n] * pairs + [0] * pairs, dtype=torch.int64)

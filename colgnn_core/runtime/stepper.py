@@ -25,6 +25,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.interior import check_interior_kind, interior_lift
+from colgnn_core.sim.tip_prior import TipContact, TipPrior
 
 
 class Stepper(Protocol):
@@ -48,6 +49,7 @@ class StepperState:
     x_t: torch.Tensor     # [N,3] object graph nodes at t
     tool_t: torch.Tensor  # [M,3] tool vertices (world) at t
     pose: np.ndarray      # [7] tool pose at t
+    contact: TipContact | None = None  # the point the tool's tip carries at t (models with tip_prior)
 
     @classmethod
     def at_rest(cls, x0_graph: np.ndarray, pose0: np.ndarray, tool) -> "StepperState":
@@ -56,9 +58,10 @@ class StepperState:
         pose = np.asarray(pose0, dtype=np.float64)
         return cls(x_t.clone(), x_t, torch.from_numpy(tool.world_vertices(pose)), pose)
 
-    def advanced(self, x_next: torch.Tensor, tool_next: torch.Tensor, pose_next: np.ndarray) -> "StepperState":
-        """The state at t+1 with object graph nodes ``x_next`` (raw or corrected)."""
-        return StepperState(self.x_t, x_next, tool_next, pose_next)
+    def advanced(self, x_next: torch.Tensor, tool_next: torch.Tensor, pose_next: np.ndarray,
+                 contact: TipContact | None) -> "StepperState":
+        """The state at t+1 with object graph nodes ``x_next`` (raw or corrected) and the tip's ``contact``."""
+        return StepperState(self.x_t, x_next, tool_next, pose_next, contact)
 
 
 class RawStepper:
@@ -83,11 +86,17 @@ class RawStepper:
         # How the mesh's interior vertices follow the graph nodes (runtime.interior).
         self.interior = check_interior_kind(interior)
         self._lift = None          # built on first use (the elastic one factorises a matrix: seconds at full)
+        # A tip_prior model's physics prior: built here, not on the first step (it factorises the stiffness: 1.3 s at
+        # full cone_bunny, which would otherwise stall the first published step).
+        self._tip = (TipPrior(scene, self.rest_mesh, self.template.object_nodes)
+                     if getattr(getattr(model, "config", None), "tip_prior", False) else None)
+        self._contact_next: TipContact | None = None  # the contact of the last proposal, kept by commit
         self.clamped = 0  # nodes capped in the last step
         self.state: StepperState | None = None
 
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
         self.state = StepperState.at_rest(x0_graph, pose0, self.scene.tool)
+        self._contact_next = None
 
     @torch.no_grad()
     def propose(self, pose_next: np.ndarray, tool_next: torch.Tensor) -> torch.Tensor:
@@ -98,13 +107,13 @@ class RawStepper:
         """
         t0 = time.perf_counter()
         s = self.state
-        frame = Frame(s.x_prev, s.x_t, s.tool_t, tool_next, pose_next)
+        frame = Frame(s.x_prev, s.x_t, s.tool_t, tool_next, pose_next, self._prior(pose_next))
         if hasattr(self.model, "build_graph") and hasattr(self.model, "network"):
             graph = self.model.build_graph(frame)
             self.world_edges = int(graph.world.senders.shape[0])
             t1 = time.perf_counter()
             pred_norm, _ = self.model.network(graph)
-            x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev)
+            x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev, frame.prior)
         else:  # models without the graph pieces (the subspace baseline)
             self.world_edges = None
             t1 = t0
@@ -112,6 +121,15 @@ class RawStepper:
         t2 = time.perf_counter()
         self.last_ms = {"graph": 1e3 * (t1 - t0), "gnn": 1e3 * (t2 - t1)}
         return self._capped(x_next)
+
+    def _prior(self, pose_next: np.ndarray) -> torch.Tensor | None:
+        """The tip prior's displacement [N,3] at ``pose_next`` for a model with tip_prior (else None); the contact
+        it carries is kept for :meth:`commit`."""
+        if self._tip is None:
+            return None
+        s = self.state
+        self._contact_next = self._tip.contact(s.contact, s.pose[:3], pose_next)
+        return torch.from_numpy(self._tip.displacement(self._contact_next, pose_next[:3]))
 
     def _capped(self, x_next: torch.Tensor) -> torch.Tensor:
         """``x_next`` with the displacement and deviation caps applied; sets ``self.clamped``."""
@@ -135,7 +153,7 @@ class RawStepper:
 
     def commit(self, x_next: torch.Tensor, tool_next: torch.Tensor, pose_next: np.ndarray) -> None:
         """Advance the state to t+1 with positions ``x_next`` (raw or corrected)."""
-        self.state = self.state.advanced(x_next, tool_next, pose_next)
+        self.state = self.state.advanced(x_next, tool_next, pose_next, self._contact_next)
 
     @torch.no_grad()
     def step(self, pose_next: np.ndarray) -> np.ndarray:

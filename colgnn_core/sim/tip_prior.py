@@ -1,0 +1,217 @@
+"""A physics prior for a sharp tool: linear elasticity at the settled rest, with the tip carrying a surface point.
+
+Why: a sharp cone pushes on face interiors, between the mesh nodes, and the object answers with a dent *and* a
+bending of its whole body (``cone_bunny``: 65-69% of the vertices move more than a tenth of the dent). A
+state-free network trained on 20-26 family sequences dented too little at contact places it had not seen
+(held-out relative displacement error 0.91). The dent's size and its spread through the body are mostly linear
+elasticity, which is cheap once the stiffness is factorised; what a network then has to learn is the remainder.
+
+The model (units: m):
+
+* **Contact.** While the tip (the tool frame's origin) lies inside the settled rest shape, one material point of
+  the rest surface is carried to the tip: the point where the tip entered (the segment from the previous tip to
+  this one crosses the rest surface there; when the tip starts inside, the point where the tool's axis leaves the
+  rest shape above the tip). A frictionless cone drags its pocket along (measured, docs/FIDELITY.md session 10),
+  but not without bound: when the carried point's rest position lies farther than ``kappa`` times the tip's depth
+  (along the axis) from the axis point (where the axis leaves the rest shape), it slides toward the axis point to
+  that distance. Outside the rest shape there is no contact and no displacement.
+* **Response.** The displacement u [N_mesh,3] minimises the linear-elastic energy 1/2 u^T K u (K the stable
+  Neo-Hookean Hessian at the settled rest, glued vertices fixed) subject to the carried point reaching the tip:
+  sum_k b_k u_k = tip - sum_k b_k X_k over the carried face's vertices k with barycentric weights b. Three
+  equality constraints: u = K^-1 A^T (A K^-1 A^T)^-1 d. The columns K^-1 A^T are three back-substitutions per face
+  vertex, solved together for a new face (about 27 ms at full ``cone_bunny``) and cached per vertex, so a stab
+  that stays on one face costs them once.
+
+Measured offline on ``cone_bunny`` full (docs/FIDELITY.md, session 12): over all frames and vertices, 0.70 on
+the six held-out trajectories without the slide rule (stabs 0.23-0.37 per frame at depth) against 0.91 for the
+shipped network; wrong where a slice or drag moves the tip far through the material.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from colgnn_core.errors import InputError
+from colgnn_core.geometry.transforms import quat_to_matrix
+from colgnn_core.sim.elasticity import StableNeoHookean
+from colgnn_core.sim.linear_solve import cholesky_solver
+
+__all__ = ["KAPPA", "TipContact", "TipPrior", "check_tip_tool"]
+
+KAPPA = 2.0          # carried point at most KAPPA x tip depth from the axis point (chosen on training sequences)
+_CACHE_VERTICES = 64  # cached K^-1 columns: 3 x 3N_free float64 each (0.36 MB at full cone_bunny)
+
+
+@dataclass(frozen=True)
+class TipContact:
+    """The carried material point: rest-surface triangle ``face`` (row of the object's faces) and barycentric
+    weights ``bary`` [3]."""
+
+    face: int
+    bary: tuple[float, float, float]
+
+
+def check_tip_tool(tool) -> None:
+    """InputError unless ``tool`` is a sharp cone (its tip, the tool frame's origin, leads every contact)."""
+    if tool.shape != "cone" or float(tool.params.get("tip_radius", 0.0)) > 0.0:
+        raise InputError(f"the tip prior needs a sharp cone (tip_radius 0), not a {tool.shape} "
+                         f"{dict(tool.params)}")
+
+
+def _ray_faces(tri: np.ndarray, origin: np.ndarray, direction: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Moeller-Trumbore against every triangle ``tri`` [F,3,3]: (hit [F] bool, ray parameter t [F], barycentric
+    weights [F,3]) for the ray origin + t direction, t > 0."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    h = np.cross(direction, e2)
+    a = np.einsum("fi,fi->f", e1, h)
+    ok = np.abs(a) > 1e-18
+    f = 1.0 / np.where(ok, a, 1.0)
+    s = origin - tri[:, 0]
+    u = f * np.einsum("fi,fi->f", s, h)
+    q = np.cross(s, e1)
+    v = f * (q @ direction)
+    t = f * np.einsum("fi,fi->f", e2, q)
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    return hit, t, np.stack([1.0 - u - v, u, v], axis=1)
+
+
+class TipPrior:
+    """The prior's displacement of graph nodes for tool poses, for one scene and settled rest (module docstring).
+
+    scene: its object (tet mesh, surface faces), material, glued vertices and tool (a sharp cone);
+    rest_mesh: [N_mesh,3] the settled rest (m); nodes: [N] mesh ids of the graph nodes the prior is given for.
+    Set-up factorises the free stiffness (seconds at full resolution).
+    """
+
+    def __init__(self, scene, rest_mesh: np.ndarray, nodes: np.ndarray, kappa: float = KAPPA):
+        check_tip_tool(scene.tool)
+        self.rest = np.asarray(rest_mesh, dtype=np.float64)
+        n = scene.object.vertices.shape[0]
+        if self.rest.shape != (n, 3) or not np.all(np.isfinite(self.rest)):
+            raise InputError(f"the tip prior's rest must be a finite [{n},3] array, got {self.rest.shape}")
+        self.nodes = np.asarray(nodes, dtype=np.int64)
+        self.kappa = float(kappa)
+        self.faces = np.asarray(scene.object.faces, dtype=np.int64)
+        self.triangles = self.rest[self.faces]                 # [F,3,3]
+        self.centroids = cKDTree(self.triangles.mean(axis=1))
+        pinned = np.zeros(n, dtype=bool)
+        pinned[np.asarray(scene.pinned, dtype=np.int64)] = True
+        self.free_index = np.full(n, -1, dtype=np.int64)
+        free = np.flatnonzero(~pinned)
+        self.free_index[free] = np.arange(free.size)
+        dof = (3 * free[:, None] + np.arange(3)).reshape(-1)
+        h = StableNeoHookean(scene.object, scene.material).hessian(self.rest).tocsr()
+        self._solve = cholesky_solver(h[dof][:, dof].tocsr())
+        self._n_free = free.size
+        self._node_free = self.free_index[self.nodes]          # [N], -1 for glued nodes
+        self._columns: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    # -- geometry ---------------------------------------------------------------------------------------------
+    def inside(self, point: np.ndarray) -> bool:
+        """Whether ``point`` [3] lies inside the rest shape (odd crossings of a ray along +z)."""
+        hit, _, _ = _ray_faces(self.triangles, np.asarray(point, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
+        return int(hit.sum()) % 2 == 1
+
+    def first_hit(self, origin: np.ndarray, direction: np.ndarray, limit: float = np.inf
+                   ) -> tuple[TipContact, float] | None:
+        """(the rest-surface point, its distance in units of ``direction``) where the ray from ``origin`` [3] along
+        ``direction`` [3] first crosses the rest surface within ``limit``; None when it does not."""
+        hit, t, bary = _ray_faces(self.triangles, origin, direction)
+        hit &= t <= limit
+        if not hit.any():
+            return None
+        i = int(np.flatnonzero(hit)[np.argmin(t[hit])])
+        return TipContact(i, tuple(float(b) for b in bary[i])), float(t[i])
+
+    def point(self, contact: TipContact) -> np.ndarray:
+        """The contact's material point in the rest shape [3] (m)."""
+        return np.asarray(contact.bary) @ self.triangles[contact.face]
+
+    def _nearest(self, q: np.ndarray) -> TipContact:
+        """The rest-surface point nearest to ``q`` [3] (among the 16 triangles with the nearest centroids)."""
+        _, cand = self.centroids.query(q, k=min(16, len(self.faces)))
+        cand = np.atleast_1d(cand)
+        tri = self.triangles[cand]
+        close = trimesh.triangles.closest_point(tri, np.repeat(q[None], len(cand), axis=0))
+        j = int(np.argmin(np.linalg.norm(close - q, axis=1)))
+        b = trimesh.triangles.points_to_barycentric(tri[j][None], close[j][None])[0]
+        b = np.clip(b, 0.0, None)
+        return TipContact(int(cand[j]), tuple(float(v) for v in b / b.sum()))
+
+    def contact(self, previous: TipContact | None, tip_prev: np.ndarray, pose: np.ndarray) -> TipContact | None:
+        """The carried point at ``pose`` [7], given the one before (None: no contact) and the previous tip [3]."""
+        pose = np.asarray(pose, dtype=np.float64)
+        tip = pose[:3]
+        if not self.inside(tip):
+            return None
+        axis = quat_to_matrix(pose[3:]) @ np.array([0.0, 0.0, 1.0])   # the cone opens toward +z: out of the object
+        up = self.first_hit(tip, axis)
+        if up is None:  # inside, yet the axis never leaves: only at a grazing ray; keep what there was
+            return previous
+        axis_point, depth = up
+        carried = previous
+        if carried is None:
+            step = tip - np.asarray(tip_prev, dtype=np.float64)
+            length = float(np.linalg.norm(step))
+            entered = self.first_hit(tip_prev, step / length, length) if length > 0 else None
+            carried = entered[0] if entered is not None else axis_point
+        rc, ra = self.point(carried), self.point(axis_point)
+        gap, reach = float(np.linalg.norm(rc - ra)), self.kappa * depth
+        if gap > reach:
+            carried = self._nearest(ra + (rc - ra) * (reach / gap))
+        return carried
+
+    # -- response ---------------------------------------------------------------------------------------------
+    def _columns_of(self, vertices: list[int]) -> list[np.ndarray]:
+        """K^-1 E_v [3, 3N_free] for each free vertex v: the free displacement for a unit force on each of its
+        coordinates. Missing ones are solved together, in one multi-right-hand-side pass (a new face: 3 vertices)."""
+        missing = [v for v in dict.fromkeys(vertices) if v not in self._columns]
+        if missing:
+            rhs = np.zeros((3 * self._n_free, 3 * len(missing)))
+            for j, v in enumerate(missing):
+                rhs[3 * self.free_index[v] + np.arange(3), 3 * j + np.arange(3)] = 1.0
+            sol = self._solve(rhs)
+            for j, v in enumerate(missing):
+                self._columns[v] = np.ascontiguousarray(sol[:, 3 * j:3 * j + 3].T)
+        for v in vertices:
+            self._columns.move_to_end(v)
+        out = [self._columns[v] for v in vertices]
+        while len(self._columns) > _CACHE_VERTICES:
+            self._columns.popitem(last=False)
+        return out
+
+    def displacement(self, contact: TipContact | None, tip: np.ndarray) -> np.ndarray:
+        """[N,3] (m): the graph nodes' linear-elastic displacement that carries ``contact``'s point to ``tip``."""
+        u = np.zeros((self.nodes.size, 3))
+        if contact is None:
+            return u
+        verts = self.faces[contact.face]
+        weights = [(int(v), b) for v, b in zip(verts, contact.bary) if self.free_index[v] >= 0 and b > 0]
+        if not weights:  # a glued triangle: nothing can move
+            return u
+        columns = self._columns_of([v for v, _ in weights])
+        cols = sum(b * c for (_, b), c in zip(weights, columns))                # K^-1 A^T, transposed [3, 3N_free]
+        s = sum(b * cols[:, 3 * self.free_index[v]:3 * self.free_index[v] + 3] for v, b in weights)  # A K^-1 A^T
+        target = np.asarray(tip, dtype=np.float64) - self.point(contact)
+        lam = np.linalg.solve(s, target)
+        free_u = (lam @ cols).reshape(-1, 3)
+        moving = self._node_free >= 0
+        u[moving] = free_u[self._node_free[moving]]
+        return u
+
+    def rollout(self, poses: np.ndarray) -> np.ndarray:
+        """[T,N,3] (m): the prior along a pose sequence [T,7] that starts out of contact or in it (frame 0 too)."""
+        poses = np.asarray(poses, dtype=np.float64)
+        out = np.zeros((len(poses), self.nodes.size, 3))
+        contact, tip_prev = None, poses[0, :3]
+        for t, pose in enumerate(poses):
+            contact = self.contact(contact, tip_prev, pose)
+            out[t] = self.displacement(contact, pose[:3])
+            tip_prev = pose[:3]
+        return out
