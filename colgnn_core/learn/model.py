@@ -338,17 +338,18 @@ class Simulator(nn.Module):
             feats = torch.cat([feats, contact_features(self.rest_surface(), rest, frame.tool_next,
                                                        self.template.num_tool_nodes)], dim=1)
         if self.config.tip_prior:
-            feats = torch.cat([feats, prior_features(self._prior(frame).to(rest.dtype),
+            feats = torch.cat([feats, prior_features(self._required_prior(frame.prior).to(rest.dtype),
                                                      self.template.num_tool_nodes)], dim=1)
         if self.coarse is not None:
             g = replace(g, coarse=coarse_edges(self.coarse, rest))
         return replace(g, node_features=feats)
 
-    def _prior(self, frame: Frame) -> torch.Tensor:
-        """The frame's prior [N,3]; InputError when a model with tip_prior gets a frame without one."""
-        if frame.prior is None:
+    @staticmethod
+    def _required_prior(prior: torch.Tensor | None) -> torch.Tensor:
+        """``prior`` [N,3]; InputError when a model with tip_prior is not given one."""
+        if prior is None:
             raise InputError("this model adds the tip prior: the frame must carry it (Frame.prior, [N,3] m)")
-        return frame.prior
+        return prior
 
     def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> tuple[MultiGraph, Pooling | None]:
         """Normalise raw features (optionally accumulating statistics) and cast to the network's float32.
@@ -406,9 +407,7 @@ class Simulator(nn.Module):
         if self.config.order == 0:
             rest = self.settled_rest.to(x_t.dtype)
             if self.config.tip_prior:
-                if prior is None:
-                    raise InputError("this model adds the tip prior: give it (Frame.prior, [N,3] m)")
-                return rest + prior.to(x_t.dtype)
+                return rest + self._required_prior(prior).to(x_t.dtype)
             return rest
         return x_t if self.config.order == 1 else 2.0 * x_t - x_prev
 
