@@ -99,6 +99,25 @@ def test_tool_and_material_arguments():
         parse_material("1e5,0.5,1000")
 
 
+def test_the_derived_network_adds_the_physics_prior_that_suits_the_tool():
+    from colgnn_core.scenes.custom import derive_model
+
+    class Mesh:
+        surface_vertices = np.arange(400)
+
+    meshes, edge = {"ci": Mesh(), "full": Mesh()}, {"ci": 0.006, "full": 0.002}
+    sharp = derive_model(False, meshes, edge, "cone", {"radius": 0.01, "height": 0.04})
+    assert sharp["tip_prior"] is True and "contact_prior" not in sharp["ci"]          # the bunny's prior, everywhere
+    for shape, params in (("sphere", {}), ("cylinder", {}), ("cone", {"tip_radius": 0.002})):
+        smooth = derive_model(False, meshes, edge, shape, params)
+        assert smooth["ci"]["contact_prior"] is True and "contact_prior" not in smooth["full"], shape
+        assert "tip_prior" not in smooth
+    blade = derive_model(False, meshes, edge, "blade", {})
+    assert "tip_prior" not in blade and "contact_prior" not in blade["ci"]            # not measured: no prior
+    loose = derive_model(True, meshes, edge, "sphere", {})
+    assert "quasi_static" not in loose and "contact_prior" not in loose["ci"]         # a prior needs quasi-static
+
+
 def _voxel_mesh(mask: np.ndarray, h: float):
     """A real tet mesh of the filled cells of ``mask`` [nx,ny,nz] (cubes of side h m, 6 tets each, conforming)."""
     from itertools import permutations
@@ -157,6 +176,8 @@ def test_scene_new_writes_a_derived_scene_that_every_command_finds():
     m = cfg["model"]
     assert m["quasi_static"] and m["order"] == 0 and (m["latent"], m["message_passing_steps"]) == (16, 2)
     assert 8 <= m["ci"]["coarse_nodes"] < m["full"]["coarse_nodes"] <= 128 and m["coarse_steps"] == 4
+    # on top of the contact prior at ci (a sphere), not at full (its first contact costs hundreds of solves there)
+    assert m["ci"]["contact_prior"] is True and "contact_prior" not in m["full"] and "tip_prior" not in m
     assert 0 < cfg["dhat"] <= 1e-3 * np.linalg.norm([0.1, 0.0667, 0.05]) + 1e-9
     listed = own.colgnn("scenes", "--json", "--resolution", "ci")
     assert listed.returncode == 0, listed.stderr
@@ -239,7 +260,8 @@ def test_fit_trains_evaluates_and_reports_within_its_budget():
     cfg = tomllib.loads((d / "pebble.toml").read_text())["model"]
     scene = build_scene(own.NAME, "ci", read_config_file(d / "pebble.toml"), base_dir=d)
     trained = load_checkpoint(d / "pebble.pt", scene)
-    assert trained.meta.variant == "baseline" and trained.config.quasi_static
+    assert trained.meta.variant == "baseline" and trained.config.quasi_static and trained.config.contact_prior
+    assert "| physics prior + correction (no network) |" in report
     assert (trained.config.latent, trained.config.message_passing_steps, trained.config.coarse_nodes) == (
         cfg["latent"], cfg["message_passing_steps"], cfg["ci"]["coarse_nodes"])
     metrics = json.loads((d / "pebble-fit" / "ci" / "eval" / "metrics.json").read_text())

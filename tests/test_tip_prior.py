@@ -52,7 +52,7 @@ def test_the_response_is_the_linear_elastic_minimiser_of_the_constraint(bunny):
     z = _surface_z(prior, (0.0, -0.03))
     pose = _pose((0.0, -0.03, z - 0.006))
     contact = prior.contact(None, pose[:3] + [0.0, 0.0, 0.02], pose)
-    u = prior.displacement(contact, pose[:3])
+    u = prior.displacement(contact, pose)
     # K u is a force on the carried face's three vertices only (the Lagrange multiplier), zero elsewhere
     k = StableNeoHookean(scene.object, scene.material).hessian(rest).tocsr()
     force = (k @ u.reshape(-1)).reshape(-1, 3)
@@ -97,7 +97,7 @@ def test_a_tip_prior_model_adds_the_prior_and_refuses_a_frame_without_it(bunny):
     b = sim.integrate(pred, x, x, p + bump)
     free = ~template.pinned
     torch.testing.assert_close(b[free] - a[free], bump[free])
-    with pytest.raises(InputError, match="tip prior"):
+    with pytest.raises(InputError, match="physics prior"):
         sim.predict(Frame(x, x, tool, tool, scene.tool_rest_pose))
     with pytest.raises(InputError, match="tip_prior needs quasi_static"):
         Simulator(template, ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, tip_prior=True))

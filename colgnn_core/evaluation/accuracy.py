@@ -47,13 +47,13 @@ from colgnn_core.scenes import scene_names
 
 MODES = ("raw", "corrected")
 # Rows of the relative-displacement table: the model's modes, the model as the ROS node runs it (output caps from the
-# training data and rest relaxation on), and the two trivial baselines a model must beat (a tip_prior model also gets
-# "prior_correction": its physics prior alone behind the correction).
+# training data and rest relaxation on), and the two trivial baselines a model must beat (a model with a physics
+# prior also gets "prior_correction": its physics prior alone behind the correction).
 RELATIVE_ROWS = ("raw", "corrected", "node", "rest", "rest_correction")
 RELATIVE_LABELS = {"raw": "raw network", "corrected": "corrected (no caps, no rest relaxation)",
                    "node": "corrected, node defaults (caps + rest relaxation)", "rest": "rest (nothing moves)",
                    "rest_correction": "rest + correction (no network)",
-                   "prior_correction": "tip prior + correction (no network)"}
+                   "prior_correction": "physics prior + correction (no network)"}
 RMSE_STEPS = (1, 10, 50)
 SURFACE_CHECK_EVERY = 10  # frames between the object-alone validity checks (ipctk's check costs ~10-50 ms a frame)
 ROW_LABELS = {"ground_truth": "ground truth", "raw": "raw network", "corrected": "corrected"}
@@ -221,7 +221,7 @@ def _relative_errors(loaded, scene, gt, positions: dict[str, np.ndarray],
     runs["rest"] = np.repeat(rest[None], len(truth), axis=0)
     runs["rest_correction"] = rollout(rest_baseline(loaded, scene), gt.tool_poses, correction=True, scene=scene,
                                       initial_positions=rest, predictor_options=options).object_positions
-    if getattr(loaded.simulator.config, "tip_prior", False):  # what the network adds over its physics prior
+    if getattr(loaded.simulator.config, "prior_kind", None):  # what the network adds over its physics prior
         runs["prior_correction"] = rollout(prior_baseline(loaded, scene), gt.tool_poses, correction=True, scene=scene,
                                            initial_positions=rest, predictor_options=options).object_positions
     ids = contact_region(truth, rest)

@@ -138,7 +138,7 @@ class FrameDataset:
         if progress:
             from tqdm import tqdm  # lazy: an optional progress bar
 
-            seqs = tqdm(seqs, desc="tip prior", unit="seq")
+            seqs = tqdm(seqs, desc="physics prior", unit="seq")
         self.priors = [np.asarray(prior_of(seq), dtype=np.float32) for seq in seqs]
 
     def __len__(self) -> int:

@@ -65,6 +65,13 @@ class ModelConfig:
     tip_prior: bool = False           # quasi_static only: a linear-elastic physics prior (sim.tip_prior: the sharp
                                       # tool's tip carries a surface point) is added to the output and given to
                                       # every node (PRIOR_FEATURES); the network learns the remainder
+    contact_prior: bool = False       # quasi_static only: the same with sim.contact_prior (a frictionless smooth
+                                      # tool holds every face it reaches on its surface)
+
+    @property
+    def prior_kind(self) -> str | None:
+        """The physics prior the output is added to (a key of sim.prior.PRIORS), or None."""
+        return "tip" if self.tip_prior else "contact" if self.contact_prior else None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -95,7 +102,7 @@ class Frame:
     tool_t: torch.Tensor     # [M,3] tool vertices (world) at t
     tool_next: torch.Tensor  # [M,3] at t+1
     pose_next: np.ndarray | None = None  # [7] tool pose at t+1 (SDF culling, collision losses)
-    prior: torch.Tensor | None = None    # [N,3] the physics prior's displacement at t+1 (m; models with tip_prior)
+    prior: torch.Tensor | None = None    # [N,3] the physics prior's displacement at t+1 (m; models with a prior)
 
 
 def frame_from_sequence(template: GraphTemplate, object_positions: np.ndarray, tool_positions: np.ndarray,
@@ -204,7 +211,7 @@ def contact_features(surface: RestSurface, rest: torch.Tensor, tool_next: torch.
     return torch.cat([obj, rest.new_zeros((num_tool_nodes, CONTACT_FEATURES))], dim=0)
 
 
-PRIOR_FEATURES = 4  # per-node features of a model with tip_prior: the prior's displacement (3) and its length (1)
+PRIOR_FEATURES = 4  # per-node features of a model with a physics prior: the prior's displacement (3) and its length (1)
 
 
 def prior_features(prior: torch.Tensor, num_tool_nodes: int) -> torch.Tensor:
@@ -243,14 +250,17 @@ class Simulator(nn.Module):
             raise InputError("quasi_static needs order 0 (the output is the displacement from the settled rest)")
         if config.contact_depth and not config.quasi_static:
             raise InputError("contact_depth needs quasi_static (the depth is measured under the settled rest)")
-        if config.tip_prior and not config.quasi_static:
-            raise InputError("tip_prior needs quasi_static (the prior is a displacement from the settled rest)")
+        if config.tip_prior and config.contact_prior:
+            raise InputError("tip_prior and contact_prior exclude each other: a model adds one physics prior")
+        if config.prior_kind and not config.quasi_static:
+            raise InputError(f"{config.prior_kind}_prior needs quasi_static (the prior is a displacement from the "
+                             "settled rest)")
         if config.global_modes < 0 or (config.global_modes and config.order != 0):
             raise InputError("global_modes needs order 0 (the modes are displacements from the settled rest) "
                              f"and must be >= 0, got {config.global_modes} with order {config.order}")
         node_in = (template.node_feature_size + (3 if config.rest_feature else 0)
                    + (TOOL_FEATURES if config.quasi_static else 0) + (CONTACT_FEATURES if config.contact_depth else 0)
-                   + (PRIOR_FEATURES if config.tip_prior else 0))
+                   + (PRIOR_FEATURES if config.prior_kind else 0))
         self.coarse = coarse_template(template, config.coarse_nodes) if config.coarse_nodes else None
         self.node_normalizer = Normalizer(node_in)
         edge_sets = dict(EDGE_SETS, **({"coarse": MESH_EDGE_FEATURES} if self.coarse is not None else {}))
@@ -337,7 +347,7 @@ class Simulator(nn.Module):
         if self.config.contact_depth:
             feats = torch.cat([feats, contact_features(self.rest_surface(), rest, frame.tool_next,
                                                        self.template.num_tool_nodes)], dim=1)
-        if self.config.tip_prior:
+        if self.config.prior_kind:
             feats = torch.cat([feats, prior_features(self._required_prior(frame.prior).to(rest.dtype),
                                                      self.template.num_tool_nodes)], dim=1)
         if self.coarse is not None:
@@ -346,9 +356,9 @@ class Simulator(nn.Module):
 
     @staticmethod
     def _required_prior(prior: torch.Tensor | None) -> torch.Tensor:
-        """``prior`` [N,3]; InputError when a model with tip_prior is not given one."""
+        """``prior`` [N,3]; InputError when a model with a physics prior is not given one."""
         if prior is None:
-            raise InputError("this model adds the tip prior: the frame must carry it (Frame.prior, [N,3] m)")
+            raise InputError("this model adds a physics prior: the frame must carry it (Frame.prior, [N,3] m)")
         return prior
 
     def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> tuple[MultiGraph, Pooling | None]:
@@ -393,7 +403,7 @@ class Simulator(nn.Module):
     def integrate(self, pred_norm: torch.Tensor, x_t: torch.Tensor, x_prev: torch.Tensor,
                   prior: torch.Tensor | None = None) -> torch.Tensor:
         """De-normalise the output and step: ``x_{t+1} = 2 x_t - x_{t-1} + a`` (order 2), ``x_t + v`` (order 1) or
-        ``X + u`` (order 0, X the settled rest, plus the ``prior`` [N,3] for a model with tip_prior); pinned nodes
+        ``X + u`` (order 0, X the settled rest, plus the ``prior`` [N,3] for a model with a physics prior); pinned nodes
         keep x_t."""
         out = self.output_normalizer.inverse(pred_norm.to(x_t.dtype))
         x_next = self._base(x_t, x_prev, prior) + out
@@ -403,10 +413,10 @@ class Simulator(nn.Module):
 
     def _base(self, x_t: torch.Tensor, x_prev: torch.Tensor, prior: torch.Tensor | None = None) -> torch.Tensor:
         """What the network's output is added to: 2 x_t - x_{t-1}, x_t or the rest X (order 2, 1, 0), the rest
-        plus the prior for a model with tip_prior."""
+        plus the prior for a model with a physics prior."""
         if self.config.order == 0:
             rest = self.settled_rest.to(x_t.dtype)
-            if self.config.tip_prior:
+            if self.config.prior_kind:
                 return rest + self._required_prior(prior).to(x_t.dtype)
             return rest
         return x_t if self.config.order == 1 else 2.0 * x_t - x_prev

@@ -50,7 +50,7 @@ from colgnn_core.learn.symmetry import NodeSymmetry, node_symmetry
 from colgnn_core.learn.training_common import (GeometricDecay, TrainResult, data_stats, domain_extra,
                                               read_resumable)
 from colgnn_core.scenes import load_scene
-from colgnn_core.sim.tip_prior import TipPrior
+from colgnn_core.sim.prior import physics_prior
 
 VARIANTS = ("full", "baseline", "no-compact", "subspace")
 GNN_VARIANTS = ("full", "baseline", "no-compact")
@@ -276,12 +276,12 @@ def _resumed_model(scene, out_ckpt: Path, variant: str, steps: int | None) -> _M
     return _Model(cfg, template, sim, opt, sched, state.step, float(state.extra.get("wall_s", 0.0)))
 
 
-def _attach_tip_prior(scene, dataset: FrameDataset, template, cfg: TrainConfig, progress: bool) -> None:
-    """Give every training sample the tip prior (sim.tip_prior), along each sequence from its frame 0."""
+def _attach_prior(scene, dataset: FrameDataset, template, cfg: TrainConfig, kind: str, progress: bool) -> None:
+    """Give every training sample the ``kind`` physics prior (sim.prior), along each sequence from its frame 0."""
     if cfg.symmetry:
-        raise InputError("tip_prior and symmetry augmentation cannot be combined: the prior is computed along the "
-                         "unturned sequences")
-    prior = TipPrior(scene, dataset.sequences[0].object_positions[0], template.object_nodes)
+        raise InputError(f"{kind}_prior and symmetry augmentation cannot be combined: the prior is computed along "
+                         "the unturned sequences")
+    prior = physics_prior(kind, scene, dataset.sequences[0].object_positions[0], template.object_nodes)
     dataset.attach_priors(lambda seq: prior.rollout(seq.tool_poses), progress=progress)
 
 
@@ -326,8 +326,8 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
     # Crossings are also counted (without gradient) at logging steps of the baseline, for comparison.
     detector = CollisionDetector(template.surface_faces, scene.tool.faces, template.num_object_nodes,
                                  template.num_tool_nodes, tool=scene.tool)
-    if model.sim.config.tip_prior:
-        _attach_tip_prior(scene, dataset, template, cfg, dist_.main)
+    if model.sim.config.prior_kind:
+        _attach_prior(scene, dataset, template, cfg, model.sim.config.prior_kind, dist_.main)
     symmetry = None
     if cfg.symmetry:
         symmetry = node_symmetry(scene, template.rest.numpy())

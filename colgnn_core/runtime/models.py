@@ -105,21 +105,21 @@ class RestModel:
 
 
 class PriorModel(RestModel):
-    """A ``tip_prior`` model's physics prior alone: every step predicts the rest graph-node positions plus the frame's
-    prior displacement [N,3] (the stepper computes it, as for the model).
+    """A model's physics prior alone (``tip_prior`` or ``contact_prior``): every step predicts the rest graph-node
+    positions plus the frame's prior displacement [N,3] (the stepper computes it, as for the model).
 
     Behind the Predictor it gives the ``prior + correction`` baseline: what the network adds over its prior."""
 
     def __init__(self, template, rest_graph: np.ndarray, config):
         super().__init__(template, rest_graph)
-        self.config = config  # tip_prior: the stepper gives every frame the prior
+        self.config = config  # its prior_kind: the stepper gives every frame the prior
 
     def predict(self, frame) -> torch.Tensor:
         return self.rest + frame.prior
 
 
 def prior_baseline(loaded: LoadedCheckpoint, scene) -> LoadedCheckpoint:
-    """``loaded`` (a ``tip_prior`` model) with its network replaced by :class:`PriorModel`, like
+    """``loaded`` (a model with a physics prior) with its network replaced by :class:`PriorModel`, like
     :func:`rest_baseline`."""
     template = loaded.simulator.template
     rest = settled_rest(loaded, scene)[template.object_nodes]

@@ -25,7 +25,8 @@ from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.interior import check_interior_kind, interior_lift
-from colgnn_core.sim.tip_prior import TipContact, TipPrior
+from colgnn_core.sim.prior import physics_prior
+from colgnn_core.sim.tip_prior import TipContact
 
 
 class Stepper(Protocol):
@@ -49,7 +50,7 @@ class StepperState:
     x_t: torch.Tensor     # [N,3] object graph nodes at t
     tool_t: torch.Tensor  # [M,3] tool vertices (world) at t
     pose: np.ndarray      # [7] tool pose at t
-    contact: TipContact | None = None  # the point the tool's tip carries at t (models with tip_prior)
+    contact: TipContact | None = None  # the physics prior's state at t (tip_prior: the point the tip carries)
 
     @classmethod
     def at_rest(cls, x0_graph: np.ndarray, pose0: np.ndarray, tool) -> "StepperState":
@@ -86,11 +87,11 @@ class RawStepper:
         # How the mesh's interior vertices follow the graph nodes (runtime.interior).
         self.interior = check_interior_kind(interior)
         self._lift = None          # built on first use (the elastic one factorises a matrix: seconds at full)
-        # A tip_prior model's physics prior: built here, not on the first step (it factorises the stiffness: 1.3 s at
-        # full cone_bunny, which would otherwise stall the first published step).
-        self._tip = (TipPrior(scene, self.rest_mesh, self.template.object_nodes)
-                     if getattr(getattr(model, "config", None), "tip_prior", False) else None)
-        self._contact_next: TipContact | None = None  # the contact of the last proposal, kept by commit
+        # A model's physics prior: built here, not on the first step (it factorises the stiffness: 1.3 s at full
+        # cone_bunny, which would otherwise stall the first published step).
+        kind = getattr(getattr(model, "config", None), "prior_kind", None)
+        self._physics = physics_prior(kind, scene, self.rest_mesh, self.template.object_nodes) if kind else None
+        self._contact_next: TipContact | None = None  # the prior's state after the last proposal, kept by commit
         self.clamped = 0  # nodes capped in the last step
         self.state: StepperState | None = None
 
@@ -123,13 +124,12 @@ class RawStepper:
         return self._capped(x_next)
 
     def _prior(self, pose_next: np.ndarray) -> torch.Tensor | None:
-        """The tip prior's displacement [N,3] at ``pose_next`` for a model with tip_prior (else None); the contact
-        it carries is kept for :meth:`commit`."""
-        if self._tip is None:
+        """The physics prior's displacement [N,3] at ``pose_next`` for a model with one (else None); the prior's
+        state is kept for :meth:`commit`."""
+        if self._physics is None:
             return None
-        s = self.state
-        self._contact_next = self._tip.contact(s.contact, s.pose[:3], pose_next)
-        return torch.from_numpy(self._tip.displacement(self._contact_next, pose_next[:3]))
+        self._contact_next, u = self._physics.step(self.state.contact, self.state.pose, pose_next)
+        return torch.from_numpy(u)
 
     def _capped(self, x_next: torch.Tensor) -> torch.Tensor:
         """``x_next`` with the displacement and deviation caps applied; sets ``self.clamped``."""

@@ -31,7 +31,8 @@ and how (L: the longest side, H: the height, T: the smallest side, e: a resoluti
   cone 20 deg, blade 10 deg);
 * material: the ``--material`` preset;
 * network (:func:`derive_model`): glued, a quasi-static 16/2/1 network with a coarse level (about 16 surface
-  vertices a cluster); on the ground, the dynamic 32/5/1 network.
+  vertices a cluster) on top of a physics prior (a sharp cone: ``tip_prior``; a sphere, cylinder or rounded cone:
+  ``contact_prior`` at ``ci``); on the ground, the dynamic 32/5/1 network.
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ TOOL_MOTION = {  # kind, tilt range (deg), yaw range (deg)
     "cone": ("stab", [0.0, 20.0], [0.0, 0.0]),
     "blade": ("cut", [0.0, 10.0], [-25.0, 25.0]),
 }
+SMOOTH_TOOLS = ("sphere", "cylinder", "cone")  # tools whose contact prior is sim.contact_prior (a rounded cone)
 FAMILY_CHECK_SEEDS = 4  # family trajectories checked against the workspace before anything is written
 
 
@@ -206,22 +208,31 @@ def coarse_clusters(surface_vertices: int) -> int:
     return int(np.clip(round(surface_vertices / 16), 8, 128))
 
 
-def derive_model(ground: bool, meshes: dict[str, TetMesh], edge: dict[str, float]) -> dict:
+def derive_model(ground: bool, meshes: dict[str, TetMesh], edge: dict[str, float], tool_shape: str = "sphere",
+                 tool_params: dict[str, float] | None = None) -> dict:
     """The network a fit trains (the TOML's ``[model]``; ``edge``: mean surface edge length per resolution, m).
 
     A glued object (no ``--ground``) comes back to the same shape for the same tool pose, whatever the path (the
     glued mat and banana, ``docs/FIDELITY.md``), so it gets the recipe that beats both trivial baselines there: a
     quasi-static 16/2/1 network (the shape as a function of the tool's pose, on the settled rest) with a coarse
-    level of 4 steps that carries the contact across the object. An object loose on the ground slides, so its shape
-    depends on the path: it keeps the dynamic 32/5/1 network (not measured on a user's scene yet)."""
+    level of 4 steps that carries the contact across the object. Its output is added to a physics prior where one
+    was measured to help: a sharp cone's ``tip_prior`` (the bunny), and at ``ci`` a smooth tool's
+    ``contact_prior`` (the cow with a sphere; at full resolution its first contact needs hundreds of
+    back-substitutions, so it is not derived there). An object loose on the ground slides, so its shape depends on
+    the path: it keeps the dynamic 32/5/1 network (not measured on a user's scene yet)."""
     common = {"surface_only": True, "contact_tests": ["vertex_face", "edge_edge"]}
     per_res = {res: {"world_radius": round(2.0 * edge[res], 6)} for res in ("ci", "full")}
     if ground:
         return {"latent": 32, "message_passing_steps": 5, "mlp_layers": 1, **common, **per_res}
     for res in per_res:
         per_res[res]["coarse_nodes"] = coarse_clusters(len(meshes[res].surface_vertices))
+    prior = {}
+    if tool_shape == "cone" and float((tool_params or {}).get("tip_radius", 0.0)) == 0.0:
+        prior = {"tip_prior": True}
+    elif tool_shape in SMOOTH_TOOLS:
+        per_res["ci"]["contact_prior"] = True
     return {"latent": 16, "message_passing_steps": 2, "mlp_layers": 1, "order": 0, "quasi_static": True,
-            "coarse_steps": 4, **common, **per_res}
+            "coarse_steps": 4, **prior, **common, **per_res}
 
 
 def derive_config(name: str, surface: SurfaceImport, meshes: dict[str, TetMesh], tool: ToolSpec,
@@ -306,7 +317,7 @@ def derive_config(name: str, surface: SurfaceImport, meshes: dict[str, TetMesh],
         "tool": {"shape": tool.shape, **params, "rest_orientation": q_rest, "rest_clearance": clearance},
         "workspace": {"min": ws_min, "max": ws_max},
         "family": fam,
-        "model": derive_model(ground, {"ci": ci, "full": full}, e),
+        "model": derive_model(ground, {"ci": ci, "full": full}, e, tool.shape, params),
     }
     if ground_cfg is not None:
         cfg["ground"] = ground_cfg
@@ -334,6 +345,9 @@ COMMENTS = {
                           "set 32/5/1, for the dynamic network)",
     "model.ci.world_radius": "m, r_W = 2 x the ci mean surface edge length",
     "model.ci.coarse_nodes": "clusters of the coarse level: about 16 surface vertices each (8-128)",
+    "model.ci.contact_prior": "the output is added to linear elasticity pushed out of the tool (sim/contact_prior.py)",
+    "model.tip_prior": "the output is added to linear elasticity with the tip carrying a surface point "
+                       "(sim/tip_prior.py)",
     "model.full.world_radius": "m, r_W = 2 x the full mean surface edge length",
 }
 

@@ -82,6 +82,7 @@ from colgnn_core.sim.linear_solve import NewtonSystemSolver
 
 _DEBUG = bool(os.environ.get("COLGNN_SIM_DEBUG"))  # print every Newton iteration (developer aid)
 _SETTLE_CACHE: dict = {}  # settled frame-0 object positions per (scene, mesh, tool pose, solver options)
+DMIN_SCALE = 4.0  # the object-tool gap dmin kept by the solver, in units of dhat (module docstring)
 MAX_SUBFRAME_DEPTH = 4  # a frame whose solve fails is halved at most 4 times: up to 16 sub-frames (as the Predictor)
 
 
@@ -166,7 +167,7 @@ class IPCSimulator:
         scene,
         newton_tol: float = 1e-2,
         dhat_scale: float = 1.0,
-        dmin_scale: float = 4.0,
+        dmin_scale: float = DMIN_SCALE,
         max_newton: int = 200,
         kappa_eps: float = 1e-4,
         kappa_min_scale: float = 1e13,

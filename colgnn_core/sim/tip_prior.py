@@ -29,7 +29,6 @@ shipped network; wrong where a slice or drag moves the tip far through the mater
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,13 +37,11 @@ from scipy.spatial import cKDTree
 
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
-from colgnn_core.sim.elasticity import StableNeoHookean
-from colgnn_core.sim.linear_solve import cholesky_solver
+from colgnn_core.sim.rest_stiffness import RestStiffness
 
 __all__ = ["KAPPA", "TipContact", "TipPrior", "check_tip_tool"]
 
-KAPPA = 2.0          # carried point at most KAPPA x tip depth from the axis point (chosen on training sequences)
-_CACHE_VERTICES = 64  # cached K^-1 columns: 3 x 3N_free float64 each (0.36 MB at full cone_bunny)
+KAPPA = 2.0  # carried point at most KAPPA x tip depth from the axis point (chosen on training sequences)
 
 
 @dataclass(frozen=True)
@@ -91,26 +88,13 @@ class TipPrior:
 
     def __init__(self, scene, rest_mesh: np.ndarray, nodes: np.ndarray, kappa: float = KAPPA):
         check_tip_tool(scene.tool)
-        self.rest = np.asarray(rest_mesh, dtype=np.float64)
-        n = scene.object.vertices.shape[0]
-        if self.rest.shape != (n, 3) or not np.all(np.isfinite(self.rest)):
-            raise InputError(f"the tip prior's rest must be a finite [{n},3] array, got {self.rest.shape}")
+        self.stiffness = RestStiffness(scene, rest_mesh)
+        self.rest = self.stiffness.rest
         self.nodes = np.asarray(nodes, dtype=np.int64)
         self.kappa = float(kappa)
         self.faces = np.asarray(scene.object.faces, dtype=np.int64)
         self.triangles = self.rest[self.faces]                 # [F,3,3]
         self.centroids = cKDTree(self.triangles.mean(axis=1))
-        pinned = np.zeros(n, dtype=bool)
-        pinned[np.asarray(scene.pinned, dtype=np.int64)] = True
-        self.free_index = np.full(n, -1, dtype=np.int64)
-        free = np.flatnonzero(~pinned)
-        self.free_index[free] = np.arange(free.size)
-        dof = (3 * free[:, None] + np.arange(3)).reshape(-1)
-        h = StableNeoHookean(scene.object, scene.material).hessian(self.rest).tocsr()
-        self._solve = cholesky_solver(h[dof][:, dof].tocsr())
-        self._n_free = free.size
-        self._node_free = self.free_index[self.nodes]          # [N], -1 for glued nodes
-        self._columns: OrderedDict[int, np.ndarray] = OrderedDict()
 
     # -- geometry ---------------------------------------------------------------------------------------------
     def inside(self, point: np.ndarray) -> bool:
@@ -144,10 +128,10 @@ class TipPrior:
         b = np.clip(b, 0.0, None)
         return TipContact(int(cand[j]), tuple(float(v) for v in b / b.sum()))
 
-    def contact(self, previous: TipContact | None, tip_prev: np.ndarray, pose: np.ndarray) -> TipContact | None:
-        """The carried point at ``pose`` [7], given the one before (None: no contact) and the previous tip [3]."""
+    def contact(self, previous: TipContact | None, pose_prev: np.ndarray, pose: np.ndarray) -> TipContact | None:
+        """The carried point at ``pose`` [7], given the one before (None: no contact) and the previous pose [7]."""
         pose = np.asarray(pose, dtype=np.float64)
-        tip = pose[:3]
+        tip, tip_prev = pose[:3], np.asarray(pose_prev, dtype=np.float64)[:3]
         if not self.inside(tip):
             return None
         axis = quat_to_matrix(pose[3:]) @ np.array([0.0, 0.0, 1.0])   # the cone opens toward +z: out of the object
@@ -157,7 +141,7 @@ class TipPrior:
         axis_point, depth = up
         carried = previous
         if carried is None:
-            step = tip - np.asarray(tip_prev, dtype=np.float64)
+            step = tip - tip_prev
             length = float(np.linalg.norm(step))
             entered = self.first_hit(tip_prev, step / length, length) if length > 0 else None
             carried = entered[0] if entered is not None else axis_point
@@ -168,50 +152,34 @@ class TipPrior:
         return carried
 
     # -- response ---------------------------------------------------------------------------------------------
-    def _columns_of(self, vertices: list[int]) -> list[np.ndarray]:
-        """K^-1 E_v [3, 3N_free] for each free vertex v: the free displacement for a unit force on each of its
-        coordinates. Missing ones are solved together, in one multi-right-hand-side pass (a new face: 3 vertices)."""
-        missing = [v for v in dict.fromkeys(vertices) if v not in self._columns]
-        if missing:
-            rhs = np.zeros((3 * self._n_free, 3 * len(missing)))
-            for j, v in enumerate(missing):
-                rhs[3 * self.free_index[v] + np.arange(3), 3 * j + np.arange(3)] = 1.0
-            sol = self._solve(rhs)
-            for j, v in enumerate(missing):
-                self._columns[v] = np.ascontiguousarray(sol[:, 3 * j:3 * j + 3].T)
-        for v in vertices:
-            self._columns.move_to_end(v)
-        out = [self._columns[v] for v in vertices]
-        while len(self._columns) > _CACHE_VERTICES:
-            self._columns.popitem(last=False)
-        return out
-
-    def displacement(self, contact: TipContact | None, tip: np.ndarray) -> np.ndarray:
-        """[N,3] (m): the graph nodes' linear-elastic displacement that carries ``contact``'s point to ``tip``."""
-        u = np.zeros((self.nodes.size, 3))
+    def displacement(self, contact: TipContact | None, pose: np.ndarray) -> np.ndarray:
+        """[N,3] (m): the graph nodes' linear-elastic displacement that carries ``contact``'s point to the tip of
+        the tool at ``pose`` [7]."""
         if contact is None:
-            return u
+            return np.zeros((self.nodes.size, 3))
+        fi = self.stiffness.free_index
         verts = self.faces[contact.face]
-        weights = [(int(v), b) for v, b in zip(verts, contact.bary) if self.free_index[v] >= 0 and b > 0]
+        weights = [(int(v), b) for v, b in zip(verts, contact.bary) if fi[v] >= 0 and b > 0]
         if not weights:  # a glued triangle: nothing can move
-            return u
-        columns = self._columns_of([v for v, _ in weights])
+            return np.zeros((self.nodes.size, 3))
+        columns = self.stiffness.columns([v for v, _ in weights])
         cols = sum(b * c for (_, b), c in zip(weights, columns))                # K^-1 A^T, transposed [3, 3N_free]
-        s = sum(b * cols[:, 3 * self.free_index[v]:3 * self.free_index[v] + 3] for v, b in weights)  # A K^-1 A^T
-        target = np.asarray(tip, dtype=np.float64) - self.point(contact)
+        s = sum(b * cols[:, 3 * fi[v]:3 * fi[v] + 3] for v, b in weights)      # A K^-1 A^T
+        target = np.asarray(pose, dtype=np.float64)[:3] - self.point(contact)
         lam = np.linalg.solve(s, target)
-        free_u = (lam @ cols).reshape(-1, 3)
-        moving = self._node_free >= 0
-        u[moving] = free_u[self._node_free[moving]]
-        return u
+        return self.stiffness.to_nodes(lam @ cols, self.nodes)
+
+    def step(self, previous: TipContact | None, pose_prev: np.ndarray, pose: np.ndarray
+             ) -> tuple[TipContact | None, np.ndarray]:
+        """(the carried point, the displacement [N,3]) at ``pose`` [7], from the carried point at ``pose_prev``."""
+        contact = self.contact(previous, pose_prev, pose)
+        return contact, self.displacement(contact, pose)
 
     def rollout(self, poses: np.ndarray) -> np.ndarray:
         """[T,N,3] (m): the prior along a pose sequence [T,7] that starts out of contact or in it (frame 0 too)."""
         poses = np.asarray(poses, dtype=np.float64)
         out = np.zeros((len(poses), self.nodes.size, 3))
-        contact, tip_prev = None, poses[0, :3]
+        contact = None
         for t, pose in enumerate(poses):
-            contact = self.contact(contact, tip_prev, pose)
-            out[t] = self.displacement(contact, pose[:3])
-            tip_prev = pose[:3]
+            contact, out[t] = self.step(contact, poses[max(t - 1, 0)], pose)
         return out
