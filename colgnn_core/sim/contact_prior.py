@@ -40,10 +40,11 @@ from scipy.optimize import nnls
 from colgnn_core.sim.ipc import DMIN_SCALE
 from colgnn_core.sim.rest_stiffness import RestStiffness
 
-__all__ = ["MAX_ROUNDS", "SAMPLE_LEVEL", "ContactPrior"]
+__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "SAMPLE_LEVEL", "ContactPrior"]
 
 SAMPLE_LEVEL = 4  # barycentric samples per face: a triangular grid of (L+1)(L+2)/2 = 15 points
 MAX_ROUNDS = 8    # active-set rounds per pose (the cow: 2-4)
+CACHE_BYTES = 1 << 27  # 128 MiB of cached K^-1 E_v columns (72 N_free bytes a vertex)
 _RIDGE = 1e-9     # relative ridge on A K^-1 A^T: constraints of faces that share their vertices are nearly dependent
 
 
@@ -65,7 +66,9 @@ class ContactPrior:
         # The ground truth keeps the surface dmin to dmin + dhat away from the tool (the solver's offset barrier):
         # the prior holds it at the middle of that band. On the cow's training sequences, 0.43 -> 0.38.
         self.gap = (DMIN_SCALE + 0.5) * float(scene.dhat)
-        self.stiffness = RestStiffness(scene, rest_mesh, cache_vertices=4096)
+        self.stiffness = RestStiffness(scene, rest_mesh)
+        # Keep every vertex that contact reaches while the cache stays under CACHE_BYTES (at ci: all of them).
+        self.stiffness.cache_vertices = max(256, CACHE_BYTES // (72 * max(self.stiffness.n_free, 1)))
         self.rest = self.stiffness.rest
         self.nodes = np.asarray(nodes, dtype=np.int64)
         faces = np.asarray(scene.object.faces, dtype=np.int64)
@@ -87,8 +90,9 @@ class ContactPrior:
         pose = np.asarray(pose, dtype=np.float64)
         free_u = np.zeros(3 * self.stiffness.n_free)
         active: dict[int, np.ndarray] = {}       # face row -> barycentric weights [3] of its constrained point
+        every = np.arange(self.rest.shape[0])
         for _ in range(MAX_ROUNDS):
-            x = self.rest + self.stiffness.to_nodes(free_u, np.arange(self.rest.shape[0]))
+            x = self.rest + self.stiffness.to_nodes(free_u, every)
             new = self._entering(x, pose, active)
             if not new and active:
                 break
