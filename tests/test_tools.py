@@ -6,7 +6,7 @@ import torch
 
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tetmesh import check_closed_surface
-from colgnn_core.geometry.tools import TOOL_SHAPES, make_tool
+from colgnn_core.geometry.tools import TOOL_SHAPES, facet_depth, make_tool, mesh_density
 from colgnn_core.geometry.transforms import axis_angle_quat, transform_points
 
 PARAMS = {
@@ -206,3 +206,22 @@ def test_analytic_gradient_matches_autograd_near_surface(key):
     agree = np.linalg.norm(g - ga.numpy(), axis=1) < 1e-6
     assert agree.mean() > 0.99
     assert np.allclose(np.linalg.norm(g, axis=1), 1.0)
+
+
+def test_facet_depth_is_the_chord_sagitta_and_mesh_density_bounds_it():
+    # A cylinder of n segments: its rim chords' midpoints lie R (1 - cos(pi/n)) inside the circle, the deepest point.
+    r = 0.02
+    cyl = make_tool("cylinder", {"radius": r, "height": 0.05, "segments": 16}, "ci")
+    assert facet_depth(cyl) == pytest.approx(r * (1 - np.cos(np.pi / 16)), rel=1e-9)
+    assert facet_depth(make_tool("blade", {"length": 0.05, "height": 0.02, "thickness": 0.002, "bevel": 0.005})) == 0
+    # The 162-vertex icosphere dips 0.018 R; each subdivision divides that by about 4.
+    depths = [facet_depth(make_tool("sphere", {"radius": 1.0, "segments": s}, "ci")) for s in (2, 3, 4)]
+    assert depths[0] == pytest.approx(0.0178, abs=5e-4) and depths[1] < depths[0] / 3.5 and depths[2] < depths[1] / 3.5
+    for shape, params in (("sphere", {"radius": 0.018}), ("cylinder", {"radius": 0.01, "height": 0.05}),
+                          ("cone", {"radius": 0.01, "height": 0.04})):
+        for bound in (2e-4, 5e-5):
+            n = mesh_density(shape, params, bound, "ci")
+            assert facet_depth(make_tool(shape, {**params, "segments": n}, "ci")) <= bound
+    # The coarsest that meets the bound, never below the resolution's default (2 subdivisions at ci).
+    assert mesh_density("sphere", {"radius": 1.0}, 0.005, "ci") == 3
+    assert mesh_density("sphere", {"radius": 1.0}, 0.1, "ci") == 2 and mesh_density("sphere", {"radius": 1.0}, 0.1) == 3

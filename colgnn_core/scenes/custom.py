@@ -15,7 +15,8 @@ and how (L: the longest side, H: the height, T: the smallest side, e: a resoluti
 
 * tool: sphere radius 0.15 L; cylinder radius 0.08 L, length 0.5 L, axis horizontal; cone radius 0.09 L, height
   0.35 L, tip down; blade length 0.45 L, height 0.18 L, thickness 0.012 L, bevel 0.045 L, edge down
-  (``--tool shape:key=value`` overrides any of them);
+  (``--tool shape:key=value`` overrides any of them); the tool's mesh, which the IPC ground truth presses with, fine
+  enough that its facets dip at most dhat inside the analytic shape that the model uses (``segments``);
 * rest pose: the tool above ``family.target_xy`` (the upward-facing surface point nearest the centroid of the
   upward-facing area), ``rest_clearance`` 0.08 L above first contact;
 * support: with ``--ground`` a static ground plane under the object (friction 0.3); otherwise the bottom band of
@@ -49,7 +50,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.geometry.mesh_import import SurfaceImport, import_surface, obj_text
 from colgnn_core.geometry.tetmesh import TetMesh
 from colgnn_core.geometry.tetrahedralize import tetrahedralize_for
-from colgnn_core.geometry.tools import TOOL_SHAPES, make_tool
+from colgnn_core.geometry.tools import TOOL_SHAPES, make_tool, mesh_density
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.io import atomic_write, ensure_writable_dir
 from colgnn_core.scenes.scene import (BUILTIN_SCENES, RESOLUTIONS, Scene, build_scene, place_on, read_config_file,
@@ -83,6 +84,7 @@ TOOL_MOTION = {  # kind, tilt range (deg), yaw range (deg)
     "cone": ("stab", [0.0, 20.0], [0.0, 0.0]),
     "blade": ("cut", [0.0, 10.0], [-25.0, 25.0]),
 }
+FACET_DEPTH = 1.0  # x dhat: how far the tool mesh may dip inside its analytic shape (geometry.tools.mesh_density)
 SMOOTH_TOOLS = ("sphere", "cylinder", "cone")  # tools whose contact prior is sim.contact_prior (a rounded cone)
 FAMILY_CHECK_SEEDS = 4  # family trajectories checked against the workspace before anything is written
 
@@ -250,6 +252,11 @@ def derive_config(name: str, surface: SurfaceImport, meshes: dict[str, TetMesh],
     params.update(tool.overrides)
     if tool.shape == "blade" and params["bevel"] >= params["height"]:
         raise InputError("--tool blade: bevel must be smaller than height")
+    # The ground truth presses with the tool's mesh: its facets within FACET_DEPTH dhat of the analytic shape that
+    # the model and the correction use (one density for both resolutions; the blade's flat sides need none).
+    segments = mesh_density(tool.shape, params, FACET_DEPTH * dhat)
+    if tool.shape != "blade":
+        params["segments"] = segments
     q_rest = TOOL_ORIENTATION[tool.shape]
     kind, tilt, yaw = TOOL_MOTION[tool.shape]
     probe = make_tool(tool.shape, params, "ci")
@@ -335,6 +342,8 @@ COMMENTS = {
     "object.pin_height": "m: vertices this close to the bottom are glued in place (max(0.03 H, 0.6 x ci edge), "
                          "or up to where the object's feet join)",
     "material.preset": "--material",
+    "tool.segments": "tool mesh density for the IPC ground truth (icosphere subdivisions, or segments around): "
+                     "its facets within dhat of the analytic shape",
     "tool.rest_clearance": "m between the tool and the object at frame 0 (0.08 L)",
     "workspace.min": "valid tool-origin positions, m: the object's bbox widened by the tool's reach",
     "family.target_xy": "first stroke aims here: the top surface point nearest the upward-facing area's centroid",
@@ -496,7 +505,10 @@ def format_summary(new: NewScene) -> str:
                      f"{m['epsilon']:>8.0e}")
     t, f, w = c["tool"], c["family"], c["workspace"]
     params = ", ".join(f"{k} {1e3 * v:.1f} mm" for k, v in t.items()
-                       if k not in ("shape", "rest_orientation", "rest_clearance"))
+                       if k not in ("shape", "rest_orientation", "rest_clearance", "segments"))
+    if "segments" in t:
+        unit = "subdivisions" if t["shape"] == "sphere" else "segments"
+        params += f"; the solver's mesh {t['segments']} {unit}"
     m = c["material"]
     support = ("ground plane at z = 0" if "ground" in c
                else f"bottom {1e3 * c['object']['pin_height']:.1f} mm glued in place")
