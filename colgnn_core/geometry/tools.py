@@ -504,7 +504,7 @@ def mesh_density(shape: str, params: dict, max_depth: float, resolution: str = "
 
     Why: the IPC ground truth presses with the tool's mesh, the model and the correction with its analytic SDF. Where
     the facets dip deeper than the barrier's reach dhat, the truth's contact force follows the facets (a 162-vertex
-    sphere of radius 18 mm tilts it by up to 9 degrees, and the cow's ground truth changed by 0.12-0.59 relative
+    sphere of radius 18 mm tilts it by up to 9 degrees, and the cow's ground truth changed by 0.12-0.68 relative
     displacement between 162 and 642 vertices), so the model is asked to learn the mesh, not the tool. The cost is
     small: 642 vertices cost the cow's solver about what 162 did; 2562 about 2.5 times as much.
     """

@@ -254,9 +254,8 @@ def derive_config(name: str, surface: SurfaceImport, meshes: dict[str, TetMesh],
         raise InputError("--tool blade: bevel must be smaller than height")
     # The ground truth presses with the tool's mesh: its facets within FACET_DEPTH dhat of the analytic shape that
     # the model and the correction use (one density for both resolutions; the blade's flat sides need none).
-    segments = mesh_density(tool.shape, params, FACET_DEPTH * dhat)
     if tool.shape != "blade":
-        params["segments"] = segments
+        params["segments"] = mesh_density(tool.shape, params, FACET_DEPTH * dhat)
     q_rest = TOOL_ORIENTATION[tool.shape]
     kind, tilt, yaw = TOOL_MOTION[tool.shape]
     probe = make_tool(tool.shape, params, "ci")
