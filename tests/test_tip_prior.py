@@ -9,7 +9,8 @@ from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.model import Frame, ModelConfig, Simulator
 from colgnn_core.scenes import load_scene
 from colgnn_core.sim.elasticity import StableNeoHookean
-from colgnn_core.sim.tip_prior import KAPPA, TipPrior
+from colgnn_core.sim.contact_prior import multipliers
+from colgnn_core.sim.tip_prior import AHEAD_GAPS, KAPPA, TipPrior, TipSidePrior
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +78,49 @@ def test_a_drag_carries_the_pocket_until_it_is_too_far_from_the_tip(bunny):
     assert far != start and np.linalg.norm(carried - axis_point) <= KAPPA * depth * 1.2
 
 
+def _deepest(scene, x: np.ndarray, pose: np.ndarray, level: int = 8) -> float:
+    """The lowest tool SDF (m) over a barycentric grid of every surface face at positions ``x``."""
+    n = level + 1
+    bary = np.array([(i, j, level - i - j) for i in range(n) for j in range(n - i)], dtype=np.float64) / level
+    points = np.einsum("sk,fkd->fsd", bary, x[np.asarray(scene.object.faces)])
+    return float(scene.tool.sdf(points.reshape(-1, 3), pose).min())
+
+
+@pytest.mark.parametrize("depth", [0.004, 0.008])
+def test_the_side_prior_widens_the_pocket_to_the_cone_and_holds_the_tip_point_ahead(bunny, depth):
+    """The tip prior's pocket is narrower than the cone: faces around it lie inside the cone. The side prior holds
+    every face outside it, and the carried point AHEAD_GAPS solver gaps ahead of the tip."""
+    scene, rest, tip = bunny
+    side = TipSidePrior(scene, rest, np.arange(rest.shape[0]))
+    xy = (-0.02, 0.0)
+    z = _surface_z(tip, xy)
+    poses = np.stack([_pose((*xy, z + 0.01)), _pose((*xy, z - depth))])
+    assert _deepest(scene, rest + tip.rollout(poses)[1], poses[1]) < -0.0003  # 0.4-1 mm inside the cone
+    u = side.rollout(poses)[1]
+    assert _deepest(scene, rest + u, poses[1]) > 0.5 * side.side.gap
+    contact = side.contact(None, poses[0], poses[1])
+    carried = np.asarray(contact.bary) @ (rest + u)[scene.object.faces[contact.face]]
+    np.testing.assert_allclose(carried, poses[1, :3] - [0.0, 0.0, AHEAD_GAPS * side.side.gap], atol=1e-9)
+    assert np.abs(u[np.asarray(scene.pinned)]).max() == 0.0
+
+
+def test_the_multipliers_meet_the_kkt_conditions_with_equality_rows():
+    """multipliers(s, t, n_eq): equality rows met exactly, inequality rows met with non-negative multipliers that
+    vanish where the row is slack (a random positive definite s, half the inequality targets out of reach)."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(9, 30))
+    s = a @ a.T
+    target = rng.normal(size=9)
+    target[6:] -= 5.0                           # rows met with room to spare
+    lam = multipliers(s, target, n_eq=3)
+    slack = s @ lam - target                    # A u - target at u = K^-1 A^T lambda
+    np.testing.assert_allclose(slack[:3], 0.0, atol=1e-7)  # the ridge (1e-9 of the mean diagonal)
+    assert np.all(lam[3:] >= 0.0) and np.all(slack[3:] >= -1e-7)
+    np.testing.assert_allclose(lam[3:] * slack[3:], 0.0, atol=1e-7)
+    assert 0 < np.count_nonzero(lam[3:]) and np.all(lam[6:] == 0.0)   # some rows push, the easy ones are slack
+    np.testing.assert_allclose(multipliers(s[:3, :3], target[:3], n_eq=3), np.linalg.solve(s[:3, :3], target[:3]))
+
+
 def test_the_tip_prior_needs_a_sharp_cone():
     mat = load_scene("sphere_mat", "ci")
     with pytest.raises(InputError, match="sharp cone"):
@@ -101,9 +145,13 @@ def test_a_tip_prior_model_adds_the_prior_and_refuses_a_frame_without_it(bunny):
         sim.predict(Frame(x, x, tool, tool, scene.tool_rest_pose))
     with pytest.raises(InputError, match="tip_prior needs quasi_static"):
         Simulator(template, ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, tip_prior=True))
+    with pytest.raises(InputError, match="side_contact needs tip_prior"):
+        Simulator(template, ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True,
+                                        side_contact=True))
 
 
-def test_the_prior_baseline_runs_the_prior_alone_behind_the_stepper(bunny, tmp_path):
+@pytest.mark.parametrize("side_contact", [False, True])
+def test_the_prior_baseline_runs_the_prior_alone_behind_the_stepper(bunny, side_contact):
     """`prior + correction` in `colgnn evaluate`: the network replaced by its physics prior, computed by the stepper
     along the poses exactly as for the model."""
     from colgnn_core.runtime.models import PriorModel
@@ -111,13 +159,14 @@ def test_the_prior_baseline_runs_the_prior_alone_behind_the_stepper(bunny, tmp_p
 
     scene, rest, prior = bunny
     template = template_from_scene(scene, surface_only=True)
-    config = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True, tip_prior=True)
+    config = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True, tip_prior=True,
+                         side_contact=side_contact)
     baseline = PriorModel(template, rest[template.object_nodes], config)
     stepper = RawStepper(baseline, scene, rest_mesh=rest)
     z = _surface_z(prior, (0.03, -0.02))
     poses = np.stack([_pose((0.03, -0.02, z + dz)) for dz in (0.01, 0.0, -0.004, -0.008, 0.01)])
     stepper.reset(rest[template.object_nodes], poses[0])
-    expect = TipPrior(scene, rest, template.object_nodes).rollout(poses)
+    expect = (TipSidePrior if side_contact else TipPrior)(scene, rest, template.object_nodes).rollout(poses)
     for t in range(1, len(poses)):
         np.testing.assert_allclose(stepper.step(poses[t]) - rest[template.object_nodes], expect[t], atol=1e-12)
     assert stepper.state.contact is None  # the tip left: nothing carried

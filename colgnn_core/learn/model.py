@@ -65,13 +65,17 @@ class ModelConfig:
     tip_prior: bool = False           # quasi_static only: a linear-elastic physics prior (sim.tip_prior: the sharp
                                       # tool's tip carries a surface point) is added to the output and given to
                                       # every node (PRIOR_FEATURES); the network learns the remainder
+    side_contact: bool = False        # tip_prior only: the cone's side also holds every face it reaches outside it
+                                      # (sim.tip_prior.TipSidePrior: a pocket as wide as the cone)
     contact_prior: bool = False       # quasi_static only: the same with sim.contact_prior (a frictionless smooth
                                       # tool holds every face it reaches on its surface)
 
     @property
     def prior_kind(self) -> str | None:
         """The physics prior the output is added to (a key of sim.prior.PRIORS), or None."""
-        return "tip" if self.tip_prior else "contact" if self.contact_prior else None
+        if self.tip_prior:
+            return "tip_side" if self.side_contact else "tip"
+        return "contact" if self.contact_prior else None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -252,6 +256,8 @@ class Simulator(nn.Module):
             raise InputError("contact_depth needs quasi_static (the depth is measured under the settled rest)")
         if config.tip_prior and config.contact_prior:
             raise InputError("tip_prior and contact_prior exclude each other: a model adds one physics prior")
+        if config.side_contact and not config.tip_prior:
+            raise InputError("side_contact needs tip_prior (it widens the sharp tip's pocket to the cone)")
         if config.prior_kind and not config.quasi_static:
             raise InputError(f"{config.prior_kind}_prior needs quasi_static (the prior is a displacement from the "
                              "settled rest)")

@@ -20,6 +20,9 @@ The model (units: m):
   over up to ``MAX_ROUNDS`` rounds, until no new face reaches the tool: each round adds the faces that the last
   answer pushed into the tool, and moves each face's point onto the surface from where the last answer left it
   (a fixed-point iteration on the tool's curvature).
+* **Shared with the sharp tip.** ``sim.tip_prior.TipSidePrior`` uses the same constraints on a cone's side, with
+  the tip's three equality constraints added (:func:`multipliers` eliminates their free multipliers), a second
+  point on a stretched face that slides over the cone (``resample``), and the cone's axis as one more sample.
 * **No state.** A frictionless tool leaves nothing behind, so the prior is a function of the tool's pose. (A sharp
   cone drags its pocket along; ``sim.tip_prior`` carries that state.)
 
@@ -28,7 +31,8 @@ to the other; the truth's tool is the sphere's mesh (its facets tilt the contact
 and a prior against that mesh scored worse on the training sequences (0.435 against 0.383).
 
 Cost: one K^-1 E_v per vertex that contact reaches (``sim.rest_stiffness``, cached) and a dense solve of one
-equation per face in contact. About 1-3 ms a step at ``ci`` on the cow (569 vertices); at full resolution (9,845)
+equation per face in contact; K^-1 A^T over all free coordinates is never formed (a round costs O(U N_free) for U
+constrained vertices). About 1-3 ms a step at ``ci`` on the cow (569 vertices); at full resolution (9,845)
 set-up took 17 s and a first contact 1.5 s, so the prior is meant for ``ci`` meshes.
 """
 
@@ -37,21 +41,48 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
+from colgnn_core.geometry.rays import ray_faces
 from colgnn_core.sim.ipc import DMIN_SCALE
 from colgnn_core.sim.rest_stiffness import RestStiffness
 
-__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "SAMPLE_LEVEL", "ContactPrior"]
+__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "RESAMPLE_DEPTH", "SAMPLE_LEVEL", "Constraint", "ContactPrior", "multipliers"]
 
 SAMPLE_LEVEL = 4  # barycentric samples per face: a triangular grid of (L+1)(L+2)/2 = 15 points
 MAX_ROUNDS = 8    # active-set rounds per pose (the cow: 2-4)
 CACHE_BYTES = 1 << 27  # 128 MiB of cached K^-1 E_v columns (72 N_free bytes a vertex)
+RESAMPLE_DEPTH = 0.05  # a second point on an active face only when it lies this many gaps deeper inside
 _RIDGE = 1e-9     # relative ridge on A K^-1 A^T: constraints of faces that share their vertices are nearly dependent
+
+
+Constraint = tuple[int, tuple[float, ...]]  # (face row, its point's barycentric weights rounded): one constraint
 
 
 def _barycentric_grid(level: int) -> np.ndarray:
     """[S,3] barycentric weights of a triangular grid with ``level`` intervals per edge."""
     return np.array([(i, j, level - i - j) for i in range(level + 1) for j in range(level + 1 - i)],
                     dtype=np.float64) / level
+
+
+def multipliers(s: np.ndarray, target: np.ndarray, n_eq: int = 0) -> np.ndarray:
+    """lambda [k] maximising lambda . target - 1/2 lambda^T s lambda, with lambda >= 0 beyond its first ``n_eq``
+    entries: the multipliers of the constraints A u = target (first n_eq rows) and A u >= target (a face
+    outside the tool gets 0, a face inside pushes). The free multipliers are eliminated in closed form (a
+    Schur complement); with the rest's s = L L^T this is the non-negative least squares problem
+    min ||L^T lambda - L^-1 target||."""
+    ridge = _RIDGE * max(float(np.trace(s)) / target.size, 1e-300)
+    s = s + ridge * np.eye(target.size)
+    if n_eq:
+        see, sei, sii = s[:n_eq, :n_eq], s[:n_eq, n_eq:], s[n_eq:, n_eq:]
+        te, ti = target[:n_eq], target[n_eq:]
+        s = sii - sei.T @ np.linalg.solve(see, sei)
+        target = ti - sei.T @ np.linalg.solve(see, te)
+    if target.size == 0:  # equality rows alone
+        return np.linalg.solve(see, te)
+    chol = np.linalg.cholesky(s)
+    lam, _ = nnls(chol.T, np.linalg.solve(chol, target), maxiter=50 * target.size)
+    if not n_eq:
+        return lam
+    return np.concatenate([np.linalg.solve(see, te - sei @ lam), lam])
 
 
 class ContactPrior:
@@ -61,12 +92,12 @@ class ContactPrior:
     rest_mesh: [N_mesh,3] the settled rest (m); nodes: [N] mesh ids of the graph nodes the prior is given for.
     """
 
-    def __init__(self, scene, rest_mesh: np.ndarray, nodes: np.ndarray):
+    def __init__(self, scene, rest_mesh: np.ndarray, nodes: np.ndarray, stiffness: RestStiffness | None = None):
         self.tool = scene.tool
         # The ground truth keeps the surface dmin to dmin + dhat away from the tool (the solver's offset barrier):
         # the prior holds it at the middle of that band. On the cow's training sequences, 0.43 -> 0.38.
         self.gap = (DMIN_SCALE + 0.5) * float(scene.dhat)
-        self.stiffness = RestStiffness(scene, rest_mesh)
+        self.stiffness = stiffness if stiffness is not None else RestStiffness(scene, rest_mesh)
         # Keep every vertex that contact reaches while the cache stays under CACHE_BYTES (at ci: all of them).
         self.stiffness.cache_vertices = max(256, CACHE_BYTES // (72 * max(self.stiffness.n_free, 1)))
         self.rest = self.stiffness.rest
@@ -89,71 +120,120 @@ class ContactPrior:
         """[3N_free] (m): the free vertices' displacement with the tool at ``pose`` [7] (module docstring)."""
         pose = np.asarray(pose, dtype=np.float64)
         free_u = np.zeros(3 * self.stiffness.n_free)
-        active: dict[int, np.ndarray] = {}       # face row -> barycentric weights [3] of its constrained point
+        active: dict[Constraint, np.ndarray] = {}   # (face row, point) -> barycentric weights [3] of that point
         every = np.arange(self.rest.shape[0])
         for _ in range(MAX_ROUNDS):
             x = self.rest + self.stiffness.to_nodes(free_u, every)
-            new = self._entering(x, pose, active)
+            new = self.entering(x, pose, active)
             if not new and active:
                 break
             active.update(new)
             if not active:
                 return free_u
-            free_u = self._solve(x, pose, active)
+            free_u = self.solve(x, pose, active)
         return free_u
 
-    def _entering(self, x: np.ndarray, pose: np.ndarray, active: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """{face row: barycentric weights of its deepest sample} for faces at positions ``x`` [N_mesh,3] that reach
-        into the tool and are not ``active``. Only faces with a vertex nearer the tool than their longest edge can
-        (the SDF is 1-Lipschitz), so only those are sampled."""
+    def entering(self, x: np.ndarray, pose: np.ndarray, active: dict[Constraint, np.ndarray], *,
+                 resample: bool = False, ray: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> dict[Constraint, np.ndarray]:
+        """{(face row, point): barycentric weights [3]} of the deepest sample of each face at positions ``x``
+        [N_mesh,3] that reaches into the tool, beyond ``active``. Only faces with a vertex nearer the tool than their
+        longest edge can (the SDF is 1-Lipschitz), so only those are sampled.
+
+        By default a face that is already ``active`` is skipped. ``resample``: an active face gets a second point
+        when another one lies deeper than ``RESAMPLE_DEPTH`` x gap (a stretched face sliding over the tool); its
+        first point alone would let the tool through it. ``ray`` (origin [3], direction [3]): where the ray
+        crosses a face is one more sample (a sharp tool's axis, which pierces a wide face between its samples)."""
         near = np.full(x.shape[0], np.inf)
         near[self.surface] = self.tool.sdf(x[self.surface], pose) - self.gap
         tri = x[self.faces]                                                          # [F,3,3]
         longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
         cand = np.flatnonzero(near[self.faces].min(axis=1) < longest)
+        if not resample:
+            taken = {f for f, _ in active}
+            cand = np.array([f for f in cand if int(f) not in taken], dtype=np.int64)
         if cand.size == 0:
             return {}
         points = np.einsum("sk,fkd->fsd", self.samples, tri[cand])
         sdf = self.tool.sdf(points.reshape(-1, 3), pose).reshape(cand.size, -1) - self.gap
         deepest = np.argmin(sdf, axis=1)
-        inside = sdf[np.arange(cand.size), deepest] < 0
-        return {int(f): self.samples[j] for f, j in zip(cand[inside], deepest[inside]) if int(f) not in active}
+        depth = sdf[np.arange(cand.size), deepest]
+        bary = self.samples[deepest]
+        if ray is not None:
+            depth, bary = self._ray_sample(tri[cand], pose, ray, depth, bary)
+        inside = depth < (-RESAMPLE_DEPTH * self.gap if resample else 0.0)
+        out = {}
+        for f, b in zip(cand[inside], bary[inside]):
+            key = (int(f), tuple(np.round(b, 3).tolist()))
+            if key not in active:
+                out[key] = b
+        return out
 
-    def _solve(self, x: np.ndarray, pose: np.ndarray, active: dict[int, np.ndarray]) -> np.ndarray:
-        """[3N_free]: the minimiser under the ``active`` faces' inequality constraints: each face's point, from its
-        place at ``x``, on or outside the tool's surface along the normal there."""
-        rows = np.fromiter(active, dtype=np.int64)
-        bary = np.stack([active[int(f)] for f in rows])                              # [k,3]
-        verts = self.faces[rows]                                                     # [k,3]
-        fi = self.stiffness.free_index[verts]
-        weight = np.where(fi >= 0, bary, 0.0)
+    def _ray_sample(self, tri: np.ndarray, pose: np.ndarray, ray: tuple[np.ndarray, np.ndarray],
+                    depth: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(depth [F], barycentric weights [F,3]) of the faces ``tri`` [F,3,3]: the deeper of the given sample and
+        the point where ``ray`` crosses the face."""
+        hit, _, b = ray_faces(tri, np.asarray(ray[0], dtype=np.float64), np.asarray(ray[1], dtype=np.float64))
+        if not hit.any():
+            return depth, bary
+        idx = np.flatnonzero(hit)
+        on_ray = self.tool.sdf(np.einsum("fk,fkd->fd", b[idx], tri[idx]), pose) - self.gap
+        deeper = on_ray < depth[idx]
+        depth, bary = depth.copy(), bary.copy()
+        depth[idx[deeper]], bary[idx[deeper]] = on_ray[deeper], b[idx[deeper]]
+        return depth, bary
+
+    def solve(self, x: np.ndarray, pose: np.ndarray, active: dict[Constraint, np.ndarray],
+              equality: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """[3N_free]: the minimiser under the ``active`` points' inequality constraints (each point, from its place
+        at ``x``, on or outside the tool's surface along the normal there) and, when given, the ``equality``
+        (face vertices [3], barycentric weights [3], displacement [3] m): that material point moves by exactly it."""
+        faces = np.fromiter((f for f, _ in active), dtype=np.int64, count=len(active))
+        bary = np.stack(list(active.values()))                                       # [k,3]
+        verts = self.faces[faces]                                                    # [k,3]
         here = np.einsum("kj,kjd->kd", bary, x[verts])
         depth, normal = self.tool.sdf_grad(here, pose)
-        depth = depth - self.gap
         moved = np.einsum("kd,kd->k", normal, here - np.einsum("kj,kjd->kd", bary, self.rest[verts]))
-        target = moved - depth                                                       # n . (b u) after the step
-        unique = np.unique(verts[fi >= 0])
-        cols = dict(zip(unique.tolist(), self.stiffness.columns(unique.tolist())))
-        # K^-1 A^T [3N_free, k]: column c = sum_j w_cj K^-1 E_{v_cj} n_c
-        kat = np.zeros((3 * self.stiffness.n_free, rows.size))
-        for c in range(rows.size):
-            for j in range(3):
-                if weight[c, j] > 0:
-                    kat[:, c] += weight[c, j] * (normal[c] @ cols[int(verts[c, j])])
-        by_vertex = kat.reshape(self.stiffness.n_free, 3, rows.size)
-        s = sum(weight[:, j, None] * np.einsum("kd,kdm->km", normal, by_vertex[np.maximum(fi[:, j], 0)])
-                for j in range(3))                                                   # A K^-1 A^T [k,k]
-        return kat @ self._dual(s, target)
+        target = moved - (depth - self.gap)                                          # n . (b u) after the step
+        n_eq = 0
+        if equality is not None:  # three rows first: n = e_x, e_y, e_z
+            e_verts, e_bary, e_target = (np.asarray(a) for a in equality)
+            verts = np.vstack([np.repeat(e_verts[None], 3, axis=0), verts])
+            bary = np.vstack([np.repeat(e_bary[None], 3, axis=0), bary])
+            normal = np.vstack([np.eye(3), normal])
+            target = np.concatenate([e_target, target])
+            n_eq = 3
+        return self._constrained_response(verts, bary, normal, target, n_eq)
 
-    @staticmethod
-    def _dual(s: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """lambda [k] >= 0 maximising lambda . target - 1/2 lambda^T s lambda: the multipliers of the inequality
-        constraints A u >= target (a face outside the tool gets 0, a face inside pushes). With s = L L^T this is
-        the non-negative least squares problem min ||L^T lambda - L^-1 target||."""
-        ridge = _RIDGE * max(float(np.trace(s)) / target.size, 1e-300)
-        chol = np.linalg.cholesky(s + ridge * np.eye(target.size))
-        lam, _ = nnls(chol.T, np.linalg.solve(chol, target), maxiter=50 * target.size)
-        return lam
+    def _constrained_response(self, verts: np.ndarray, bary: np.ndarray, normal: np.ndarray, target: np.ndarray,
+                              n_eq: int) -> np.ndarray:
+        """[3N_free]: u = K^-1 A^T lambda for the rows n_c . sum_j b_cj u_{v_cj} (glued vertices dropped), with
+        lambda from :meth:`_dual`. K^-1 A^T is never formed: with C [3U, 3N_free] the cached K^-1 E_v of the U
+        constrained vertices and M [3U, k] the rows' weighted normals, A K^-1 A^T = M^T C_U M (C_U: C at those
+        vertices' own coordinates, [3U, 3U]) and u = C^T (M lambda), so a round costs O(U N_free), not O(k N_free)."""
+        fi = self.stiffness.free_index[verts]
+        weight = np.where(fi >= 0, bary, 0.0)
+        unique, slot = np.unique(np.where(fi >= 0, verts, -1), return_inverse=True)
+        slot = slot.reshape(verts.shape)
+        first = int(unique[0] < 0)                 # slot 0 holds the glued vertices' -1 when there are any
+        unique = unique[first:]
+        if unique.size == 0:
+            return np.zeros(3 * self.stiffness.n_free)
+        cols = self.stiffness.columns(unique.tolist())                                  # each [3, 3N_free]
+        m = np.zeros((unique.size, 3, len(verts)))
+        for j in range(3):
+            keep = slot[:, j] >= first
+            np.add.at(m, (slot[keep, j] - first, slice(None), np.flatnonzero(keep)),
+                      weight[keep, j, None] * normal[keep])
+        m = m.reshape(-1, len(verts))
+        own = (3 * self.stiffness.free_index[unique][:, None] + np.arange(3)).reshape(-1)
+        c_own = np.concatenate([c[:, own] for c in cols], axis=0)                       # [3U, 3U]
+        lam = multipliers(m.T @ c_own @ m, target, n_eq)
+        w = (m @ lam).reshape(-1, 3)
+        free_u = np.zeros(3 * self.stiffness.n_free)
+        for c, wu in zip(cols, w):
+            free_u += wu @ c
+        return free_u
 
     def rollout(self, poses: np.ndarray) -> np.ndarray:
         """[T,N,3] (m): the prior along a pose sequence [T,7]."""
