@@ -64,6 +64,12 @@ def check_tip_tool(tool) -> None:
                          f"{dict(tool.params)}")
 
 
+def _axis(pose: np.ndarray) -> np.ndarray:
+    """[3] the cone's axis in the world at ``pose`` [7]: the tool frame's +z, along which the cone opens, out of
+    the object."""
+    return quat_to_matrix(np.asarray(pose, dtype=np.float64)[3:]) @ np.array([0.0, 0.0, 1.0])
+
+
 class TipPrior:
     """The prior's displacement of graph nodes for tool poses, for one scene and settled rest (module docstring).
 
@@ -120,7 +126,7 @@ class TipPrior:
         tip, tip_prev = pose[:3], np.asarray(pose_prev, dtype=np.float64)[:3]
         if not self.inside(tip):
             return None
-        axis = quat_to_matrix(pose[3:]) @ np.array([0.0, 0.0, 1.0])   # the cone opens toward +z: out of the object
+        axis = _axis(pose)
         up = self.first_hit(tip, axis)
         if up is None:  # inside, yet the axis never leaves: only at a grazing ray; keep what there was
             return previous
@@ -203,8 +209,7 @@ class TipSidePrior(TipPrior):
 
     def target(self, contact: TipContact, pose: np.ndarray) -> np.ndarray:
         pose = np.asarray(pose, dtype=np.float64)
-        axis = quat_to_matrix(pose[3:]) @ np.array([0.0, 0.0, 1.0])
-        return pose[:3] - AHEAD_GAPS * self.side.gap * axis - self.point(contact)
+        return pose[:3] - AHEAD_GAPS * self.side.gap * _axis(pose) - self.point(contact)
 
     def free_displacement(self, contact: TipContact | None, pose: np.ndarray) -> np.ndarray:
         """[3N_free] (m): the tip's constraint and the side's, together, while the tip is inside the rest shape.
@@ -216,13 +221,13 @@ class TipSidePrior(TipPrior):
         if contact is None or not free_u.any():  # no contact, or a glued triangle
             return free_u
         pose = np.asarray(pose, dtype=np.float64)
-        axis = quat_to_matrix(pose[3:]) @ np.array([0.0, 0.0, 1.0])
         tip = (self.faces[contact.face], np.asarray(contact.bary), self.target(contact, pose))
+        ray = (pose[:3], _axis(pose))
         every = np.arange(self.rest.shape[0])
         active: dict = {}
         for _ in range(SIDE_ROUNDS):
             x = self.rest + self.stiffness.to_nodes(free_u, every)
-            new = self.side.entering(x, pose, active, resample=True, ray=(pose[:3], axis))
+            new = self.side.entering(x, pose, active, resample=True, ray=ray)
             if not new:
                 break
             active.update(new)
