@@ -6,6 +6,7 @@ import pytest
 from colgnn_core.collision import exact
 from colgnn_core.collision.broad_phase import (CandidatePairs, Surface, ToolSDFBound, box_pairs, mesh_edges,
                                                step_candidates)
+from colgnn_core.collision.kernels import grid_join, grid_self_join
 from colgnn_core.collision.pipeline import CollisionDetector, pair_points
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tools import make_tool
@@ -34,6 +35,23 @@ def test_box_pairs_matches_brute_force(na, nb, size):
     assert got.shape[1] == 2
     assert set(map(tuple, got)) == brute_box_pairs(lo_a, hi_a, lo_b, hi_b)
     assert len(got) == len(set(map(tuple, got)))  # no duplicates
+
+
+@pytest.mark.parametrize("na, nb, size", [(0, 5, 0.1), (7, 0, 0.1), (50, 80, 0.05), (300, 200, 0.2), (40, 40, 0.0),
+                                                (150, 100, 0.0), (2000, 3, 0.01), (500, 500, 0.5)])
+def test_grid_joins_match_brute_force(na, nb, size):
+    rng = np.random.default_rng(na + nb)
+    lo_a, lo_b = rng.uniform(0, 1, (na, 3)), rng.uniform(0, 1, (nb, 3))
+    hi_a, hi_b = lo_a + rng.uniform(0, size, (na, 3)), lo_b + rng.uniform(0, size, (nb, 3))
+    if size == 0.0:  # touching degenerate boxes: identical points
+        lo_b[:10], hi_b[:10] = lo_a[:10], hi_a[:10]
+    hi_a[:3] += 0.9  # a few boxes far larger than the rest: they span many cells
+    got = grid_join(lo_a, hi_a, lo_b, hi_b)
+    assert set(map(tuple, got)) == brute_box_pairs(lo_a, hi_a, lo_b, hi_b)
+    assert len(got) == len(set(map(tuple, got)))
+    own = grid_self_join(lo_a, hi_a)
+    assert set(map(tuple, own)) == {(i, j) for i, j in brute_box_pairs(lo_a, hi_a, lo_a, hi_a) if i < j}
+    assert len(own) == len(set(map(tuple, own)))
 
 
 def test_surface_topology():

@@ -1,5 +1,6 @@
 """The numba helpers shared by the collision stages: small vector algebra, the coplanarity cubic of the
-non-penetration filter, swept boxes and their sort-and-sweep join, point, segment and triangle distances.
+non-penetration filter, swept boxes and their joins (sort-and-sweep, uniform grid), point, segment and triangle
+distances.
 
 Every function here is compiled by numba (``@njit``) or inlined into the kernels that call it
 (``@register_jitable``: plain Python on arrays, tensors or tuples too), so :mod:`.filter`,
@@ -127,7 +128,10 @@ def box_join(lo_a, hi_a, lo_b, hi_b):
         for i in range(na):
             for j in range(nb):
                 if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
-                    out, n = push_pair(out, n, i, j)
+                    if n == out.shape[0]:
+                        out = grow_pairs(out)
+                    out[n, 0], out[n, 1] = i, j
+                    n += 1
         return out[:n].copy()
     k, best = 0, -1.0
     for ax in range(3):
@@ -145,16 +149,149 @@ def box_join(lo_a, hi_a, lo_b, hi_b):
         while j < nb and sb[j] <= hi_a[i, k]:
             jb = ob[j]
             if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, jb):
-                out, n = push_pair(out, n, i, jb)
+                if n == out.shape[0]:
+                    out = grow_pairs(out)
+                out[n, 0], out[n, 1] = i, jb
+                n += 1
             j += 1
     for jb in range(nb):
         i = np.searchsorted(sa, lo_b[jb, k], side="right")
         while i < na and sa[i] <= hi_b[jb, k]:
             ia = oa[i]
             if boxes_overlap(lo_a, hi_a, ia, lo_b, hi_b, jb):
-                out, n = push_pair(out, n, ia, jb)
+                if n == out.shape[0]:
+                    out = grow_pairs(out)
+                out[n, 0], out[n, 1] = ia, jb
+                n += 1
             i += 1
     return out[:n].copy()
+
+
+GRID_CELLS_PER_BOX = 4  # grid_join: at most this many cells per box on average (the grid coarsens beyond)
+
+
+@njit(cache=True)
+def grid_join(lo_a, hi_a, lo_b, hi_b):
+    """Uniform-grid join of two box sets [Ka,3], [Kb,3] -> pairs [K,2] (i, j) of overlapping closed boxes.
+
+    The same pairs as :func:`box_join`, in another order. Faster where both sets are many small boxes packed in a
+    region (a surface against its own neighbourhood): a box meets only the boxes in the cells it covers, where a
+    sweep along one axis meets a whole slab. The cell is the sets' mean largest box extent, coarsened until the grid
+    has at most ``GRID_CELLS_PER_BOX`` cells per box; a pair is reported in the first cell both boxes cover.
+    """
+    na, nb = lo_a.shape[0], lo_b.shape[0]
+    out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
+    if na == 0 or nb == 0:
+        return out[:0]
+    org, dims, inv = _grid(lo_a, hi_a, lo_b, hi_b)
+    cl, ch, start, ids = _grid_cells(lo_b, hi_b, org, dims, inv)
+    n = 0
+    al = np.empty(3, dtype=np.int64)
+    ah = np.empty(3, dtype=np.int64)
+    for i in range(na):
+        for a in range(3):
+            al[a] = min(max(int((lo_a[i, a] - org[a]) * inv), 0), dims[a] - 1)
+            ah[a] = min(max(int((hi_a[i, a] - org[a]) * inv), 0), dims[a] - 1)
+        a0, a1, a2 = al[0], al[1], al[2]
+        for x in range(a0, ah[0] + 1):
+            for y in range(a1, ah[1] + 1):
+                for z in range(a2, ah[2] + 1):
+                    c = (x * dims[1] + y) * dims[2] + z
+                    for q in range(start[c], start[c + 1]):
+                        j = ids[q]
+                        if x != max(a0, cl[j, 0]) or y != max(a1, cl[j, 1]) or z != max(a2, cl[j, 2]):
+                            continue  # not the first cell both cover: the pair is met there
+                        if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
+                            if n == out.shape[0]:
+                                out = grow_pairs(out)
+                            out[n, 0], out[n, 1] = i, j
+                            n += 1
+    return out[:n].copy()
+
+
+@njit(cache=True)
+def grid_self_join(lo, hi):
+    """Pairs [K,2] (i, j), i < j, of overlapping closed boxes within one set [K,3] (see :func:`grid_join`)."""
+    nb = lo.shape[0]
+    out = np.empty((max(16, 4 * nb), 2), dtype=np.int64)
+    if nb < 2:
+        return out[:0]
+    org, dims, inv = _grid(lo, hi, lo, hi)
+    cl, ch, start, ids = _grid_cells(lo, hi, org, dims, inv)
+    n = 0
+    for i in range(nb):
+        a0, a1, a2 = cl[i, 0], cl[i, 1], cl[i, 2]
+        for x in range(a0, ch[i, 0] + 1):
+            for y in range(a1, ch[i, 1] + 1):
+                for z in range(a2, ch[i, 2] + 1):
+                    c = (x * dims[1] + y) * dims[2] + z
+                    for q in range(start[c], start[c + 1]):
+                        j = ids[q]
+                        if j <= i or x != max(a0, cl[j, 0]) or y != max(a1, cl[j, 1]) or z != max(a2, cl[j, 2]):
+                            continue
+                        if boxes_overlap(lo, hi, i, lo, hi, j):
+                            if n == out.shape[0]:
+                                out = grow_pairs(out)
+                            out[n, 0], out[n, 1] = i, j
+                            n += 1
+    return out[:n].copy()
+
+
+@register_jitable
+def _grid(lo_a, hi_a, lo_b, hi_b):
+    """(origin [3], cells per axis [3], 1 / cell size) of a grid over both box sets."""
+    ext = 0.0
+    for i in range(lo_a.shape[0]):
+        ext += max(hi_a[i, 0] - lo_a[i, 0], hi_a[i, 1] - lo_a[i, 1], hi_a[i, 2] - lo_a[i, 2]) / lo_a.shape[0]
+    ext_b = 0.0
+    for j in range(lo_b.shape[0]):
+        ext_b += max(hi_b[j, 0] - lo_b[j, 0], hi_b[j, 1] - lo_b[j, 1], hi_b[j, 2] - lo_b[j, 2]) / lo_b.shape[0]
+    org = np.empty(3)
+    span = np.empty(3)
+    for a in range(3):
+        org[a] = min(lo_a[:, a].min(), lo_b[:, a].min())
+        span[a] = max(hi_a[:, a].max(), hi_b[:, a].max()) - org[a]
+    h = max(ext, ext_b, 1e-300, span.max() * 1e-6)
+    dims = np.empty(3, dtype=np.int64)
+    limit = GRID_CELLS_PER_BOX * (lo_a.shape[0] + lo_b.shape[0]) + 64
+    while True:
+        for a in range(3):
+            dims[a] = int(span[a] / h) + 1
+        if dims[0] * dims[1] * dims[2] <= limit:
+            break
+        h *= 1.5
+    return org, dims, 1.0 / h
+
+
+@register_jitable
+def _grid_cells(lo, hi, org, dims, inv):
+    """Cell ranges (lowest [K,3], highest [K,3]) of each box and the CSR (start [cells+1], box ids) of the
+    boxes in each cell."""
+    nb = lo.shape[0]
+    nc = dims[0] * dims[1] * dims[2]
+    cl = np.empty((nb, 3), dtype=np.int64)
+    ch = np.empty((nb, 3), dtype=np.int64)
+    start = np.zeros(nc + 1, dtype=np.int64)
+    for j in range(nb):
+        for a in range(3):
+            cl[j, a] = min(max(int((lo[j, a] - org[a]) * inv), 0), dims[a] - 1)
+            ch[j, a] = min(max(int((hi[j, a] - org[a]) * inv), 0), dims[a] - 1)
+        for x in range(cl[j, 0], ch[j, 0] + 1):
+            for y in range(cl[j, 1], ch[j, 1] + 1):
+                for z in range(cl[j, 2], ch[j, 2] + 1):
+                    start[(x * dims[1] + y) * dims[2] + z + 1] += 1
+    for c in range(nc):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    ids = np.empty(start[nc], dtype=np.int64)
+    for j in range(nb):
+        for x in range(cl[j, 0], ch[j, 0] + 1):
+            for y in range(cl[j, 1], ch[j, 1] + 1):
+                for z in range(cl[j, 2], ch[j, 2] + 1):
+                    c = (x * dims[1] + y) * dims[2] + z
+                    ids[fill[c]] = j
+                    fill[c] += 1
+    return cl, ch, start, ids
 
 
 @register_jitable
@@ -165,14 +302,13 @@ def boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
 
 
 @register_jitable
-def push_pair(out, n, i, j):
-    if n == out.shape[0]:
-        grown = np.empty((2 * n, 2), dtype=np.int64)
-        grown[:n] = out
-        out = grown
-    out[n, 0] = i
-    out[n, 1] = j
-    return out, n + 1
+def grow_pairs(out):
+    """``out`` [n,2] copied into a buffer twice as long. Callers append a pair as ``if n == out.shape[0]: out =
+    grow_pairs(out)``, then write row n: an array returned from a call on every append (in a tuple with n) costs
+    reference counting per pair, measured at 0.5-1 ms per 10^5 pair tests in the joins below."""
+    grown = np.empty((2 * out.shape[0], 2), dtype=np.int64)
+    grown[:out.shape[0]] = out
+    return grown
 
 
 @njit(cache=True)

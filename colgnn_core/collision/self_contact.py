@@ -64,8 +64,8 @@ from numba import njit
 from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
 from colgnn_core.collision.correction import CollisionCorrector
-from colgnn_core.collision.kernels import (box_join, point_triangle, point_triangle_distance, prim_boxes, row3,
-                                           segment_distance, segment_params, vertex_boxes)
+from colgnn_core.collision.kernels import (grid_join, grid_self_join, point_triangle, point_triangle_distance,
+                                           prim_boxes, row3, segment_distance, segment_params, vertex_boxes)
 from colgnn_core.collision.surface_validity import SurfaceValidity
 from colgnn_core.errors import InputError
 
@@ -412,7 +412,8 @@ def _deviation(x0, x1, rest, S, n):
 @njit(cache=True)
 def _candidates(X0, X1, hot, S, faces, edges, grow):
     """Non-adjacent (vertex, face) [K,2] and (edge, edge) [J,2] pairs with a hot vertex whose swept boxes come within
-    ``grow`` (m): the hot primitives against every primitive whose box meets the hot region's box."""
+    ``grow`` (m): the hot primitives against every primitive whose box meets the hot region's box (uniform-grid
+    joins: the hot region is many small boxes packed together)."""
     nh = 0
     for v in S:
         nh += hot[v]
@@ -440,11 +441,13 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
     near_f = _inside(prim_boxes(X0, X1, faces, np.arange(faces.shape[0])), lo, hi)
     near_e = _inside(prim_boxes(X0, X1, edges, np.arange(edges.shape[0])), lo, hi)
     near_v = S[_inside(vertex_boxes(X0, X1, S), lo, hi)]
+    cold_v = near_v[~hot[near_v]]  # hot vertices meet every near face in the first join
+    cold_e = near_e[~hot_e[near_e]]  # hot edge pairs come from the self-join
     nflo, nfhi = prim_boxes(X0, X1, faces, near_f)
     vlo, vhi = vertex_boxes(X0, X1, hv)
-    p1 = box_join(vlo - grow, vhi + grow, nflo, nfhi)
-    nvlo, nvhi = vertex_boxes(X0, X1, near_v)
-    p2 = box_join(nvlo, nvhi, flo - grow, fhi + grow)
+    p1 = grid_join(vlo - grow, vhi + grow, nflo, nfhi)
+    cvlo, cvhi = vertex_boxes(X0, X1, cold_v)
+    p2 = grid_join(cvlo, cvhi, flo - grow, fhi + grow)
     vf = np.empty((p1.shape[0] + p2.shape[0], 2), dtype=np.int64)
     k = 0
     for r in range(p1.shape[0]):
@@ -453,18 +456,24 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
             vf[k, 0], vf[k, 1] = v, f
             k += 1
     for r in range(p2.shape[0]):
-        v, f = near_v[p2[r, 0]], hf[p2[r, 1]]
-        if not hot[v] and not _in_face(v, faces, f):  # hot vertices were paired above
+        v, f = cold_v[p2[r, 0]], hf[p2[r, 1]]
+        if not _in_face(v, faces, f):
             vf[k, 0], vf[k, 1] = v, f
             k += 1
     elo, ehi = prim_boxes(X0, X1, edges, he)
-    nelo, nehi = prim_boxes(X0, X1, edges, near_e)
-    p3 = box_join(elo - grow, ehi + grow, nelo, nehi)
-    ee = np.empty((p3.shape[0], 2), dtype=np.int64)
+    p3 = grid_self_join(elo - 0.5 * grow, ehi + 0.5 * grow)  # two boxes grown by half: within grow of each other
+    celo, cehi = prim_boxes(X0, X1, edges, cold_e)
+    p4 = grid_join(elo - grow, ehi + grow, celo, cehi)
+    ee = np.empty((p3.shape[0] + p4.shape[0], 2), dtype=np.int64)
     j = 0
     for r in range(p3.shape[0]):
-        a, b = he[p3[r, 0]], near_e[p3[r, 1]]
-        if (not hot_e[b] or a < b) and not _share(edges, a, b):  # a pair of hot edges is found twice: keep one
+        a, b = he[p3[r, 0]], he[p3[r, 1]]
+        if not _share(edges, a, b):
+            ee[j, 0], ee[j, 1] = a, b
+            j += 1
+    for r in range(p4.shape[0]):
+        a, b = he[p4[r, 0]], cold_e[p4[r, 1]]
+        if not _share(edges, a, b):
             ee[j, 0], ee[j, 1] = a, b
             j += 1
     return vf[:k].copy(), ee[:j].copy()
