@@ -284,3 +284,32 @@ def test_contact_depth_sees_a_sharp_tool_between_the_nodes():
     torch.testing.assert_close(feats[:, :3], sim.settled_rest - torch.as_tensor(q))
     with pytest.raises(InputError, match="contact_depth needs quasi_static"):
         make_sim(contact_depth=True)
+
+
+
+def test_a_quasi_static_graph_encodes_its_rest_edges_once_and_never_serves_stale_ones():
+    sim, verts, tool = make_sim(order=0, quasi_static=True, coarse_nodes=8, coarse_steps=1)
+    f = make_frame(verts, tool)
+    for _ in range(2):
+        sim.training_outputs(f, f.x_t)  # fill the normalizers
+
+    def outputs(cached: bool) -> torch.Tensor:
+        with torch.set_grad_enabled(not cached):  # with a gradient (training) every edge set is encoded afresh
+            g = sim.build_graph(f)
+            assert g.encoded == (("mesh", "coarse") if cached else ())
+            return sim.network(g)[0].detach()
+
+    first = outputs(True)
+    torch.testing.assert_close(first, outputs(False), rtol=1e-6, atol=1e-6)
+    with torch.no_grad():
+        assert sim.static_edges() is sim.static_edges()  # one entry, reused
+        sim.core.edge_encoders["mesh"][0].weight.mul_(1.5)  # as a training step changes the encoder ...
+    second = outputs(True)
+    assert not torch.allclose(first, second)
+    torch.testing.assert_close(second, outputs(False), rtol=1e-6, atol=1e-6)  # ... the entry follows it
+    copy = Simulator(sim.template, sim.config)
+    copy.load_state_dict(sim.state_dict())
+    with torch.no_grad():
+        torch.testing.assert_close(copy.network(copy.build_graph(f))[0], outputs(True))
+        with pytest.raises(ValueError, match="cannot accumulate"):
+            sim.network(sim.build_graph(f), accumulate=True)

@@ -108,12 +108,14 @@ class Pooling:
     """A coarse level for :class:`EncodeProcessDecode`: clusters of the first ``assign.shape[0]`` fine nodes.
 
     ``assign`` [P] int64 cluster (coarse node) of each pooled fine node; ``inverse_counts`` [K,1] float32 one over
-    the cluster sizes (for the mean); ``edges`` the coarse edge set (raw features, encoded by the network).
+    the cluster sizes (for the mean); ``edges`` the coarse edge set: raw features, encoded by the network, or with
+    ``encoded`` its latents already (:meth:`CoarseLevel.encode_edges`; a graph whose coarse edges never change).
     """
 
     assign: torch.Tensor
     inverse_counts: torch.Tensor
     edges: EdgeSet
+    encoded: bool = False
 
     @property
     def num_coarse(self) -> int:
@@ -134,12 +136,17 @@ class CoarseLevel(nn.Module):
         self.blocks = nn.ModuleList(GraphNetBlock(latent, mlp_layers, ("coarse",)) for _ in range(steps))
         self.up = make_mlp(latent, latent, latent, mlp_layers, layer_norm=False)
 
+    def encode_edges(self, features: torch.Tensor) -> torch.Tensor:
+        """Raw coarse edge features [Ec,F] -> latents [Ec,D]."""
+        return self.edge_encoder(features)
+
     def forward(self, h: torch.Tensor, pooling: Pooling) -> torch.Tensor:
         """Fine node latents [N,D] -> updated fine latents [N,D] (nodes past the pooled ones unchanged)."""
         p = pooling.assign.shape[0]
         pooled = h.new_zeros((pooling.num_coarse, h.shape[1])).index_add_(0, pooling.assign, h[:p])
-        coarse = MultiGraph(self.down(pooled * pooling.inverse_counts),
-                            {"coarse": replace(pooling.edges, features=self.edge_encoder(pooling.edges.features))})
+        edges = pooling.edges if pooling.encoded else replace(pooling.edges,
+                                                              features=self.encode_edges(pooling.edges.features))
+        coarse = MultiGraph(self.down(pooled * pooling.inverse_counts), {"coarse": edges})
         for block in self.blocks:
             coarse = block(coarse)
         back = self.up(coarse.node_features)[pooling.assign]
@@ -177,14 +184,20 @@ class EncodeProcessDecode(nn.Module):
         self.coarse_after = (message_passing_steps + 1) // 2
         self.decoder = make_mlp(latent, latent, out_size, mlp_layers, layer_norm=False)
 
-    def encode(self, graph: MultiGraph) -> MultiGraph:
-        """Raw (normalised) features -> latent graph."""
+    def encode(self, graph: MultiGraph, encoded: tuple[str, ...] = ()) -> MultiGraph:
+        """Raw (normalised) features -> latent graph. The edge sets named in ``encoded`` hold latents already
+        (:meth:`encode_edges`) and pass unchanged: a graph part that is the same every step is encoded once."""
         missing = set(self.edge_set_names) - set(graph.edge_sets)
         if missing:
             raise ValueError(f"graph lacks edge sets {sorted(missing)}")
-        edges = {n: replace(graph.edge_sets[n], features=self.edge_encoders[n](graph.edge_sets[n].features))
+        edges = {n: graph.edge_sets[n] if n in encoded else
+                 replace(graph.edge_sets[n], features=self.encode_edges(n, graph.edge_sets[n].features))
                  for n in self.edge_set_names}
         return MultiGraph(self.node_encoder(graph.node_features), edges)
+
+    def encode_edges(self, name: str, features: torch.Tensor) -> torch.Tensor:
+        """Raw (normalised) features [E,F] of edge set ``name`` -> latents [E,latent]."""
+        return self.edge_encoders[name](features)
 
     def process(self, latent_graph: MultiGraph, pooling: Pooling | None = None) -> MultiGraph:
         """Apply the message-passing blocks in order (and the coarse level, given its ``pooling``)."""

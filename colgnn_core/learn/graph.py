@@ -88,6 +88,10 @@ class GraphInputs:
     world: EdgeSet                  # features [2W,4]; first W edges tool->object, then object->tool
     num_object_nodes: int
     coarse: EdgeSet | None = None   # features [Ec,8] between cluster centres (models with a coarse level)
+    # Edge sets ("mesh", "coarse") whose features are the network's normalised, encoded latents already [E,latent]:
+    # a quasi-static model's graph lies on the settled rest, so at inference they are the same every step
+    # (learn.model.Simulator.static_edges). The normalisers and encoders skip them.
+    encoded: tuple[str, ...] = ()
 
     @property
     def num_world_pairs(self) -> int:
@@ -232,14 +236,26 @@ def find_world_edges(object_pos: np.ndarray, tool_pos: np.ndarray, radius: float
     return obj[order], tool[order]
 
 
+def mesh_edge_set(template: GraphTemplate, x_t: torch.Tensor) -> EdgeSet:
+    """Mesh edge features [E,8] at object graph-node positions ``x_t`` [N,3] (m): ``[x_s - x_r, |x_s - x_r|, rest,
+    |rest|]``."""
+    s, r = template.mesh_senders, template.mesh_receivers
+    d = x_t[s] - x_t[r]
+    feats = torch.cat([d, torch.linalg.vector_norm(d, dim=1, keepdim=True),
+                       template.mesh_rest_features.to(x_t.dtype)], dim=1)
+    return EdgeSet(feats, s, r)
+
+
 def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor, tool_t: torch.Tensor,
-                tool_next: torch.Tensor, pose_next: np.ndarray | None = None) -> GraphInputs:
+                tool_next: torch.Tensor, pose_next: np.ndarray | None = None, mesh: EdgeSet | None = None
+                ) -> GraphInputs:
     """Graph features for predicting t -> t+1.
 
     Args:
         x_t, x_prev: [N,3] object graph-node positions at t and t-1 (m).
         tool_t, tool_next: [M,3] tool surface vertices (world) at t and t+1 (m).
         pose_next: [7] tool pose at t+1, used only for SDF culling (None: no culling).
+        mesh: the mesh edge set to use (default :func:`mesh_edge_set` at ``x_t``).
     """
     n, m = x_t.shape[0], tool_next.shape[0]
     if n != template.num_object_nodes or m != template.num_tool_nodes:
@@ -249,10 +265,8 @@ def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor
     velocity = torch.cat([x_t - x_prev, tool_next - tool_t], dim=0)
     node_features = torch.cat([velocity, template.node_one_hot.to(dtype)], dim=1)
 
-    s, r = template.mesh_senders, template.mesh_receivers
-    d = x_t[s] - x_t[r]
-    mesh_feat = torch.cat([d, torch.linalg.vector_norm(d, dim=1, keepdim=True), template.mesh_rest_features.to(dtype)],
-                          dim=1)
+    if mesh is None:
+        mesh = mesh_edge_set(template, x_t)
 
     obj_np = x_t.detach().cpu().numpy()
     tool_np = tool_next.detach().cpu().numpy()
@@ -265,7 +279,7 @@ def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor
     pos = torch.cat([x_t, tool_next], dim=0)
     dw = pos[w_send] - pos[w_recv]
     world_feat = torch.cat([dw, torch.linalg.vector_norm(dw, dim=1, keepdim=True)], dim=1)
-    return GraphInputs(node_features, EdgeSet(mesh_feat, s, r), EdgeSet(world_feat, w_send, w_recv), n)
+    return GraphInputs(node_features, mesh, EdgeSet(world_feat, w_send, w_recv), n)
 
 
 def lift_to_mesh(template: GraphTemplate, x_graph: np.ndarray, rest: np.ndarray | None = None) -> np.ndarray:

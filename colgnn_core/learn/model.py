@@ -30,7 +30,7 @@ from colgnn_core.geometry.tetmesh import vertex_normals
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGraph, Pooling, make_mlp
 from colgnn_core.learn.graph import (MESH_EDGE_FEATURES, WORLD_EDGE_FEATURES, GraphInputs, GraphTemplate,
-                                     build_graph, coarse_edges, coarse_template)
+                                     build_graph, coarse_edges, coarse_template, mesh_edge_set)
 from colgnn_core.learn.normalizer import Normalizer
 
 EDGE_SETS = {"mesh": MESH_EDGE_FEATURES, "world": WORLD_EDGE_FEATURES}
@@ -343,11 +343,43 @@ class Simulator(nn.Module):
             g = replace(g, coarse=coarse_edges(self.coarse, frame.x_t))
         return g
 
+    def static_edges(self) -> dict[str, EdgeSet] | None:
+        """The normalised, encoded edge sets of a quasi-static graph that do not change from step to step: the mesh
+        edges (and the coarse ones), which lie on the settled rest. For inference (no gradient) only; None
+        otherwise.
+
+        Computed once, then reused while the settled rest, the edge normalisers and those encoders are the same
+        tensors at the same in-place versions (the key), so a training step, accumulated statistics or loaded
+        weights are never served a stale entry. Saves the mesh edges' features, normalisation and encoder MLP on
+        every step (a few ms at full resolution)."""
+        if not self.config.quasi_static or torch.is_grad_enabled():
+            return None
+        tensors = [self.settled_rest, *self.edge_normalizers.buffers(), *self.core.edge_encoders["mesh"].parameters()]
+        if self.core.coarse is not None:
+            tensors += list(self.core.coarse.edge_encoder.parameters())
+        key = tuple((id(t), t._version) for t in tensors)
+        cached = self.__dict__.get("_static_edges")
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        rest = self.settled_rest
+        mesh = mesh_edge_set(self.template, rest)
+        edges = {"mesh": replace(mesh, features=self.core.encode_edges(
+            "mesh", self.edge_normalizers["mesh"](mesh.features).float()))}
+        if self.coarse is not None:
+            coarse = coarse_edges(self.coarse, rest)
+            edges["coarse"] = replace(coarse, features=self.core.coarse.encode_edges(
+                self.edge_normalizers["coarse"](coarse.features).float()))
+        self.__dict__["_static_edges"] = (key, edges)
+        return edges
+
     def _quasi_static_graph(self, frame: Frame) -> GraphInputs:
         """The graph on the settled rest X (velocity 0, world edges from X to the tool at t+1), with
-        :func:`tool_features` appended to the node features. x_t and x_{t-1} are not inputs."""
+        :func:`tool_features` appended to the node features. x_t and x_{t-1} are not inputs. At inference the
+        mesh and coarse edge sets come encoded from :meth:`static_edges`."""
         rest = self.settled_rest.to(frame.x_t.dtype)
-        g = build_graph(self.template, rest, rest, frame.tool_t, frame.tool_next, frame.pose_next)
+        static = self.static_edges()
+        g = build_graph(self.template, rest, rest, frame.tool_t, frame.tool_next, frame.pose_next,
+                        mesh=None if static is None else static["mesh"])
         tool = tool_features(self.template, rest, frame.tool_t, frame.tool_next, frame.pose_next)
         feats = torch.cat([g.node_features, tool], dim=1)
         if self.config.contact_depth:
@@ -357,8 +389,8 @@ class Simulator(nn.Module):
             feats = torch.cat([feats, prior_features(self._required_prior(frame.prior).to(rest.dtype),
                                                      self.template.num_tool_nodes)], dim=1)
         if self.coarse is not None:
-            g = replace(g, coarse=coarse_edges(self.coarse, rest))
-        return replace(g, node_features=feats)
+            g = replace(g, coarse=coarse_edges(self.coarse, rest) if static is None else static["coarse"])
+        return replace(g, node_features=feats, encoded=() if static is None else tuple(static))
 
     @staticmethod
     def _required_prior(prior: torch.Tensor | None) -> torch.Tensor:
@@ -370,17 +402,23 @@ class Simulator(nn.Module):
     def normalise_graph(self, g: GraphInputs, accumulate: bool = False) -> tuple[MultiGraph, Pooling | None]:
         """Normalise raw features (optionally accumulating statistics) and cast to the network's float32.
 
-        Returns the fine graph and, for a model with a coarse level, its pooling (normalised coarse edges)."""
+        Returns the fine graph and, for a model with a coarse level, its pooling (normalised coarse edges). Edge sets
+        that ``g`` holds encoded already (``g.encoded``) pass unchanged."""
+        if accumulate and g.encoded:
+            raise ValueError(f"cannot accumulate statistics over encoded edge sets {g.encoded}")
         nodes = self.node_normalizer(g.node_features, accumulate).float()
         edges = {}
         for name, es in (("mesh", g.mesh), ("world", g.world)):
-            feats = self.edge_normalizers[name](es.features, accumulate).float()
-            edges[name] = EdgeSet(feats, es.senders, es.receivers)
+            if name not in g.encoded:
+                es = EdgeSet(self.edge_normalizers[name](es.features, accumulate).float(), es.senders, es.receivers)
+            edges[name] = es
         pooling = None
         if self.coarse is not None:
-            feats = self.edge_normalizers["coarse"](g.coarse.features, accumulate).float()
-            pooling = Pooling(self.coarse.assign, self.coarse.inverse_counts.float(),
-                              EdgeSet(feats, g.coarse.senders, g.coarse.receivers))
+            coarse, encoded = g.coarse, "coarse" in g.encoded
+            if not encoded:
+                coarse = EdgeSet(self.edge_normalizers["coarse"](coarse.features, accumulate).float(),
+                                 coarse.senders, coarse.receivers)
+            pooling = Pooling(self.coarse.assign, self.coarse.inverse_counts.float(), coarse, encoded)
         return MultiGraph(nodes, edges), pooling
 
     def network(self, g: GraphInputs, accumulate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
@@ -390,15 +428,16 @@ class Simulator(nn.Module):
         modes = None
         if self.global_head is not None:  # the modes in output units: the output normalizer divides by its std
             modes = (self.global_modes / self.output_normalizer.std()).float()
-        return self.core_outputs(graph, g.num_object_nodes, pooling, modes)
+        return self.core_outputs(graph, g.num_object_nodes, pooling, modes, g.encoded)
 
     def core_outputs(self, graph: MultiGraph, num_object_nodes: int, pooling: Pooling | None = None,
-                     modes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                     modes: torch.Tensor | None = None, encoded: tuple[str, ...] = ()
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Encode-process-decode a normalised graph: (outputs, final latents) of the object nodes.
 
         ``modes`` [K,N,3] (normalised output units, float32): the global modes, weighted by the head's
-        coefficients and added to every node's output."""
-        latent_graph = self.core.process(self.core.encode(graph), pooling)
+        coefficients and added to every node's output. ``encoded``: edge sets that hold latents already."""
+        latent_graph = self.core.process(self.core.encode(graph, encoded), pooling)
         latents = latent_graph.node_features[:num_object_nodes]  # tool nodes need no decoding
         out = self.core.decode(latents)
         if modes is not None:
