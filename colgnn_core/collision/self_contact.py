@@ -438,9 +438,9 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
     for a in range(3):  # the hot region's box (hot faces hold every hot vertex and edge), grown
         lo[a] = flo[:, a].min() - grow
         hi[a] = fhi[:, a].max() + grow
-    near_f = _inside(prim_boxes(X0, X1, faces, np.arange(faces.shape[0])), lo, hi)
-    near_e = _inside(prim_boxes(X0, X1, edges, np.arange(edges.shape[0])), lo, hi)
-    near_v = S[_inside(vertex_boxes(X0, X1, S), lo, hi)]
+    near_f = _near(X0, X1, faces, lo, hi)
+    near_e = _near(X0, X1, edges, lo, hi)
+    near_v = S[_near(X0, X1, S.reshape(-1, 1), lo, hi)]
     cold_v = near_v[~hot[near_v]]  # hot vertices meet every near face in the first join
     cold_e = near_e[~hot_e[near_e]]  # hot edge pairs come from the self-join
     nflo, nfhi = prim_boxes(X0, X1, faces, near_f)
@@ -480,13 +480,22 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
 
 
 @njit(cache=True)
-def _inside(boxes, lo, hi):
-    """Ids [K] of the boxes (lo [K,3], hi [K,3]) that meet the box [lo, hi]."""
-    blo, bhi = boxes
-    keep = np.zeros(blo.shape[0], dtype=np.bool_)
-    for i in range(blo.shape[0]):
-        keep[i] = ((blo[i, 0] <= hi[0]) & (lo[0] <= bhi[i, 0]) & (blo[i, 1] <= hi[1]) & (lo[1] <= bhi[i, 1])
-                   & (blo[i, 2] <= hi[2]) & (lo[2] <= bhi[i, 2]))
+def _near(X0, X1, prims, lo, hi):
+    """Ids [K] of the primitives ``prims`` [P,m] (vertex ids) whose swept boxes over X0 -> X1 meet the box [lo, hi]
+    (without building the P boxes: this runs over the whole surface every step)."""
+    keep = np.zeros(prims.shape[0], dtype=np.bool_)
+    for k in range(prims.shape[0]):
+        meets = True
+        for a in range(3):
+            b_lo, b_hi = np.inf, -np.inf
+            for i in range(prims.shape[1]):
+                v = prims[k, i]
+                b_lo = min(b_lo, X0[v, a], X1[v, a])
+                b_hi = max(b_hi, X0[v, a], X1[v, a])
+            if b_lo > hi[a] or b_hi < lo[a]:
+                meets = False
+                break
+        keep[k] = meets
     return np.flatnonzero(keep)
 
 
