@@ -208,11 +208,13 @@ def template_from_scene(scene, surface_only: bool | None = None, world_radius: f
 
 
 def find_world_edges(object_pos: np.ndarray, tool_pos: np.ndarray, radius: float, sdf: SdfFn | None = None,
-                     pose: np.ndarray | None = None, margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                     pose: np.ndarray | None = None, margin: float = 0.0, sdf_values: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """All (object node, tool node) pairs with ``|x_i - y_j| <= radius``.
 
     Object nodes whose ``|sdf(x, pose)|`` exceeds ``radius + margin`` are culled
-    first (exact when ``margin`` bounds the tool vertices' |sdf|).
+    first (exact when ``margin`` bounds the tool vertices' |sdf|). ``sdf_values`` [N] (m): those SDF values where the
+    caller has them already.
 
     Returns:
         ``(object_ids [W], tool_ids [W])`` int64, sorted by object id then tool id.
@@ -220,8 +222,10 @@ def find_world_edges(object_pos: np.ndarray, tool_pos: np.ndarray, radius: float
     empty = np.zeros(0, dtype=np.int64)
     if object_pos.shape[0] == 0 or tool_pos.shape[0] == 0:
         return empty, empty
-    if sdf is not None and pose is not None:
-        candidates = np.flatnonzero(np.abs(sdf(object_pos, pose)) <= radius + margin)
+    if sdf_values is None and sdf is not None and pose is not None:
+        sdf_values = sdf(object_pos, pose)
+    if sdf_values is not None:
+        candidates = np.flatnonzero(np.abs(sdf_values) <= radius + margin)
         if candidates.size == 0:
             return empty, empty
         pts = object_pos[candidates]
@@ -247,8 +251,8 @@ def mesh_edge_set(template: GraphTemplate, x_t: torch.Tensor) -> EdgeSet:
 
 
 def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor, tool_t: torch.Tensor,
-                tool_next: torch.Tensor, pose_next: np.ndarray | None = None, mesh: EdgeSet | None = None
-                ) -> GraphInputs:
+                tool_next: torch.Tensor, pose_next: np.ndarray | None = None, mesh: EdgeSet | None = None,
+                node_sdf: np.ndarray | None = None) -> GraphInputs:
     """Graph features for predicting t -> t+1.
 
     Args:
@@ -256,6 +260,7 @@ def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor
         tool_t, tool_next: [M,3] tool surface vertices (world) at t and t+1 (m).
         pose_next: [7] tool pose at t+1, used only for SDF culling (None: no culling).
         mesh: the mesh edge set to use (default :func:`mesh_edge_set` at ``x_t``).
+        node_sdf: [N] the tool's SDF at ``x_t`` and ``pose_next`` (m), where the caller has it (else computed).
     """
     n, m = x_t.shape[0], tool_next.shape[0]
     if n != template.num_object_nodes or m != template.num_tool_nodes:
@@ -271,7 +276,7 @@ def build_graph(template: GraphTemplate, x_t: torch.Tensor, x_prev: torch.Tensor
     obj_np = x_t.detach().cpu().numpy()
     tool_np = tool_next.detach().cpu().numpy()
     obj_ids, tool_ids = find_world_edges(obj_np, tool_np, template.world_radius, template.tool_sdf, pose_next,
-                                         template.sdf_margin)
+                                         template.sdf_margin, node_sdf)
     obj_ids_t = torch.from_numpy(obj_ids)
     tool_ids_t = torch.from_numpy(tool_ids) + n  # tool nodes follow the object nodes
     w_send = torch.cat([tool_ids_t, obj_ids_t])

@@ -133,7 +133,7 @@ TOOL_FEATURES = 20  # per-node tool features of a quasi-static model (see tool_f
 
 
 def tool_features(template: GraphTemplate, rest: torch.Tensor, tool_t: torch.Tensor, tool_next: torch.Tensor,
-                  pose_next: np.ndarray | None) -> torch.Tensor:
+                  pose_next: np.ndarray | None, sdf: np.ndarray | None = None) -> torch.Tensor:
     """What every object node of a quasi-static model knows about the tool, whatever its hop distance [N+M,20].
 
     Per object node (rest position X, tool pose (p, R) at t+1, metres): ``X - p`` (3), ``R^T (X - p)`` (3, the
@@ -143,7 +143,8 @@ def tool_features(template: GraphTemplate, rest: torch.Tensor, tool_t: torch.Ten
     contact seen from the node: ``X - c`` (3) and the depth ``-min sdf`` (1), with c the rest node deepest in the
     tool (the nearest one when none is inside). These last four give a node many hops from the tool how deep and
     where the press is, which the local world edges cannot. Tool nodes get zeros. Without a pose (``pose_next``
-    None) the tool's centroid and identity orientation stand in.
+    None) the tool's centroid and identity orientation stand in. ``sdf`` [N] (m): :func:`rest_sdf`, where the caller
+    has it.
     """
     dtype = rest.dtype
     motion = (tool_next - tool_t).mean(0)
@@ -154,15 +155,22 @@ def tool_features(template: GraphTemplate, rest: torch.Tensor, tool_t: torch.Ten
         origin = torch.as_tensor(pose[:3], dtype=dtype)
         rot = torch.as_tensor(quat_to_matrix(pose[3:]), dtype=dtype)
     d = rest - origin
-    if template.tool_sdf is not None and pose_next is not None:
-        sdf = torch.as_tensor(template.tool_sdf(rest.detach().cpu().numpy(), np.asarray(pose_next)), dtype=dtype)
-    else:
-        sdf = torch.linalg.vector_norm(d, dim=1)
+    if sdf is None:
+        sdf = rest_sdf(template, rest, pose_next)
+    sdf = torch.linalg.vector_norm(d, dim=1) if sdf is None else torch.as_tensor(sdf, dtype=dtype)
     n = rest.shape[0]
     deepest = int(torch.argmin(sdf))
     obj = torch.cat([d, d @ rot, sdf[:, None], motion.expand(n, 3), rot[:, 2].expand(n, 3), rest,
                      rest - rest[deepest], (-sdf[deepest]).expand(n, 1)], dim=1)
     return torch.cat([obj, rest.new_zeros((template.num_tool_nodes, TOOL_FEATURES))], dim=0)
+
+
+def rest_sdf(template: GraphTemplate, rest: torch.Tensor, pose_next: np.ndarray | None) -> np.ndarray | None:
+    """The tool's SDF [N] (m) at the rest nodes ``rest`` [N,3] for the pose ``pose_next``; None without a tool SDF or
+    a pose. One evaluation serves the world edges' culling and :func:`tool_features`."""
+    if template.tool_sdf is None or pose_next is None:
+        return None
+    return template.tool_sdf(rest.detach().cpu().numpy(), np.asarray(pose_next))
 
 
 CONTACT_FEATURES = 4  # per-node tool-side penetration features of a model with contact_depth (see RestSurface)
@@ -378,9 +386,10 @@ class Simulator(nn.Module):
         mesh and coarse edge sets come encoded from :meth:`static_edges`."""
         rest = self.settled_rest.to(frame.x_t.dtype)
         static = self.static_edges()
+        sdf = rest_sdf(self.template, rest, frame.pose_next)
         g = build_graph(self.template, rest, rest, frame.tool_t, frame.tool_next, frame.pose_next,
-                        mesh=None if static is None else static["mesh"])
-        tool = tool_features(self.template, rest, frame.tool_t, frame.tool_next, frame.pose_next)
+                        mesh=None if static is None else static["mesh"], node_sdf=sdf)
+        tool = tool_features(self.template, rest, frame.tool_t, frame.tool_next, frame.pose_next, sdf)
         feats = torch.cat([g.node_features, tool], dim=1)
         if self.config.contact_depth:
             feats = torch.cat([feats, contact_features(self.rest_surface(), rest, frame.tool_next,
