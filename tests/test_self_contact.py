@@ -116,6 +116,29 @@ def test_a_collapsed_triangle_is_repaired(tool):
     np.testing.assert_allclose(out.positions[far], x1[far])
 
 
+def test_a_triangle_already_flipped_in_the_last_state_is_repaired_from_the_rest(tool):
+    # The fallback can leave a flipped triangle (its one unrepaired case); the next step starts from it. Returning to
+    # x0 would keep it, so the patch takes its neighbours' displacement from the rest.
+    rest, F = patch(0.0)
+    h = SIZE / CELLS
+    centre = len(rest) // 2
+    x0 = rest + np.array([0.0, 0.0, 0.002])
+    x0[centre] += [1.6 * h, 0.4 * h, 0.003]  # pulled over its neighbours, above them: flipped, not touching
+    stage = SelfContact(F, len(rest), rest)
+    assert stage.validity.counts(x0).flipped > 0
+    assert stage.check(x0, x0).pairs == 0 and not self_intersects(x0, F)
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    p = pose(0, 0, 0.05)
+    T = tool.world_vertices(p)
+    out = stage.correct(corr, x0, x0 + [0.0, 0.0, 1e-4], p, p, T, T)
+    assert out.invalid_before > 0 and not out.fallback
+    assert_clean(stage, F, x0, out, tool, T, T)
+    # The repaired vertex follows its neighbours' lift from the rest; far vertices keep theirs.
+    np.testing.assert_allclose(out.positions[centre], rest[centre] + [0.0, 0.0, 0.0021], atol=2e-6)  # 30 sweeps
+    far = np.linalg.norm(rest - rest[centre], axis=1) > 3 * h
+    np.testing.assert_allclose(out.positions[far], x0[far] + [0.0, 0.0, 1e-4])
+
+
 def stage_counts(rest, F, x):
     return SurfaceValidity(F, rest).counts(x)
 

@@ -26,7 +26,10 @@ Repair, up to ``max_rounds`` rounds, each followed by the tool pass:
 
 1. invalid triangles: their vertices and one ring around them take the displacement x1 - x0 of their neighbours
    (a harmonic fill: the patch follows the surface around it, its own distortion removed); from round
-   ``FILL_ROUNDS`` on they return to x0 (valid) instead;
+   ``FILL_ROUNDS`` on they return to x0 (valid) instead. A triangle invalid in x0 as well (left by the fallback's
+   one unrepaired case below) cannot be repaired relative to x0: its vertices and a ring take their neighbours'
+   displacement *from the rest* (any rigid or affine motion of the surroundings is reproduced exactly, so the patch
+   gets its rest shape moved with them), in every round;
 2. self pairs: moved apart at t+1 along their separation at the time t* the CCD found, by
    (SELF_TARGET - d*) / t* split over the pair's four vertices with minimal-norm barycentric weights (the tool
    pass's pushes, both primitives movable); from round ``PUSH_ROUNDS`` on the pair's vertices and a ring
@@ -50,7 +53,8 @@ certificate is redone. Safety (x0 self-clean and valid):
 Validity under the fallback: triangles outside the region are x0's (valid); mixed triangles are checked (else they
 join the region); a triangle inside the region keeps its edge lengths and area, and its normal turns by the tool's
 rotation theta, so it can flip only if its x0 normal was within theta of 90 degrees from its rest normal. That case is
-not repaired (nothing safe is left to move): it is counted in ``invalid_after``.
+not repaired in that step (nothing safe is left to move): it is counted in ``invalid_after``, and the next step's
+repair takes it back to its rest shape (repair step 1).
 """
 
 from __future__ import annotations
@@ -277,11 +281,28 @@ class SelfContact:
             else:
                 disp[patch] = 0.0
             x[patch] = x0[patch] + disp[patch]
+            inherited = self._inherited(chk, x0)
+            if inherited.any():
+                # Invalid in x0 as well (the fallback's one unrepaired case): following x0, or returning to it, keeps
+                # the defect. These patches follow their neighbours' displacement from the rest instead: a rigid or
+                # affine motion of the surroundings is harmonic, so the patch takes its rest shape moved the same way.
+                u = _harmonic_fill(x - self.rest, inherited, *self.neighbours, FILL_ITERATIONS)
+                x[inherited] = self.rest[inherited] + u[inherited]
         if r < PUSH_ROUNDS and chk.pairs:
             vid, push = self._pushes(chk, x0, x)
             keep = ~patch[vid]
             x[vid[keep]] += push[keep]
         return x
+
+    def _inherited(self, chk: SelfCheck, x0: np.ndarray) -> np.ndarray:
+        """Bool [N]: the vertices, and one ring, of triangles invalid in x0 and still invalid in the step's result."""
+        mask = np.zeros(self.n, dtype=np.bool_)
+        if chk.invalid.any():
+            both = chk.invalid & self.validity.invalid(x0)
+            mask[self.surface.faces[both].ravel()] = True
+            if mask.any():
+                mask = _grow(mask, *self.neighbours)
+        return mask
 
     def _pushes(self, chk: SelfCheck, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Averaged displacements at t+1 (vertex ids [K], [K,3]) moving each flagged pair apart along its separation
