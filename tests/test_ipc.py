@@ -226,3 +226,24 @@ def test_the_newton_solver_factorises_a_stiff_system_once_and_reuses_the_factor(
     x = soft.solve(h, np.ones(n), key=n)
     assert np.linalg.norm(h @ x - 1.0) <= 10 * PCG_RTOL * np.sqrt(n)
     assert not soft.jacobi_failed and soft.factorisations == 0
+
+
+def test_a_system_that_jacobi_cg_solves_slowly_is_factorised_from_then_on():
+    """Converging is not enough: more than JACOBI_SLOW_ITERATIONS switches the simulation to the lagged factor (the
+    soft banana's deep presses took 200-400 Jacobi iterations a solve, 30-40 solves a frame)."""
+    import scipy.sparse as sp
+
+    from colgnn_core.sim.linear_solve import JACOBI_SLOW_ITERATIONS, PCG_RTOL, NewtonSystemSolver, pcg_solve
+
+    n = 2000
+    h = _chain(n, 2e-3)  # condition ~ 2e3: Jacobi CG converges, slowly
+    stats: dict = {}
+    assert pcg_solve(h, np.ones(n), stats=stats) is not None and stats["iterations"] > JACOBI_SLOW_ITERATIONS
+    solver = NewtonSystemSolver()
+    rng = np.random.default_rng(1)
+    for k in range(5):
+        hk = (h + 1e-4 * k * sp.eye(n)).tocsr()
+        r = rng.normal(size=n)
+        x = solver.solve(hk, r, key=n)
+        assert np.linalg.norm(hk @ x - r) <= 10 * PCG_RTOL * np.linalg.norm(r)
+    assert solver.jacobi_failed and solver.factorisations == 1  # one factor, reused by the four later systems
