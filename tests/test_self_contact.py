@@ -139,6 +139,23 @@ def test_a_triangle_already_flipped_in_the_last_state_is_repaired_from_the_rest(
     np.testing.assert_allclose(out.positions[far], x0[far] + [0.0, 0.0, 1e-4])
 
 
+def test_the_fallback_repairs_a_triangle_that_the_last_state_left_flipped(tool):
+    rest, F = patch(0.0)
+    h = SIZE / CELLS
+    centre = len(rest) // 2
+    x0 = rest + np.array([0.0, 0.0, 0.002])
+    x0[centre] += [1.6 * h, 0.4 * h, 0.003]
+    stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: straight to the fallback
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    p = pose(0, 0, 0.05)
+    T = tool.world_vertices(p)
+    out = stage.correct(corr, x0, x0 + [0.0, 0.0, 1e-4], p, p, T, T)
+    assert out.fallback and out.invalid_before > 0
+    assert_clean(stage, F, x0, out, tool, T, T)  # it used to keep x0's flipped triangles, step after step
+    far = np.linalg.norm(rest - rest[centre], axis=1) > 3 * h
+    np.testing.assert_array_equal(out.positions[far], x0[far])  # the fallback keeps x0 elsewhere
+
+
 def stage_counts(rest, F, x):
     return SurfaceValidity(F, rest).counts(x)
 

@@ -54,7 +54,9 @@ Validity under the fallback: triangles outside the region are x0's (valid); mixe
 join the region); a triangle inside the region keeps its edge lengths and area, and its normal turns by the tool's
 rotation theta, so it can flip only if its x0 normal was within theta of 90 degrees from its rest normal. That case is
 not repaired in that step (nothing safe is left to move): it is counted in ``invalid_after``, and the next step's
-repair takes it back to its rest shape (repair step 1).
+repair takes it back to its rest shape (repair step 1). A triangle outside the region that the fallback keeps invalid
+(it was invalid in x0) is taken to its rest shape the same way when the result then passes the full check and the
+tool certificate; otherwise it stays as x0 had it.
 """
 
 from __future__ import annotations
@@ -338,9 +340,10 @@ class SelfContact:
         base = x.copy()
         base[S] = x0[S]  # non-surface graph nodes keep their values: they take no part in contact
         region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c)
+        kept = self.validity.invalid(x0)  # invalid before the step: not the region's doing (see _repair_kept)
         for _ in range(len(S) + 1):  # every round adds a vertex: at most |S| rounds (in practice a few)
             chk = self.check(x0, base, moving=region)
-            mixed = chk.invalid & ~region[F].all(axis=1)
+            mixed = chk.invalid & ~kept & ~region[F].all(axis=1)
             grow = np.zeros(self.n, dtype=np.bool_)
             grow[F[mixed].ravel()] = True
             if chk.pairs:
@@ -350,7 +353,30 @@ class SelfContact:
             # One ring more than needed: fewer rounds (each is a check) for the same guarantee.
             grow = _grow(grow, *self.neighbours)
             region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c, region=region | grow)
-        return base, region
+        return self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, c)
+
+    def _repair_kept(self, corrector: CollisionCorrector, x0, base, region, pose0, pose1, T0, T1, c: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The fallback's result ``base`` with the triangles it keeps invalid outside its rigid region (invalid in
+        x0: the fallback keeps x0 there, so a defect would outlive every later step that falls back) taken to their
+        rest shape as in repair step 1, where that is safe: the tool certificate redone (the region may grow), the
+        full check of the step clean and fewer invalid triangles than in ``base``. Else ``base`` unchanged."""
+        F = self.surface.faces
+        invalid = self.validity.invalid(base)
+        kept = invalid & ~region[F].all(axis=1)
+        if not kept.any():
+            return base, region
+        patch = np.zeros(self.n, dtype=np.bool_)
+        patch[F[kept].ravel()] = True
+        patch = _grow(patch, *self.neighbours) & ~region
+        trial = base.copy()
+        u = _harmonic_fill(trial - self.rest, patch, *self.neighbours, FILL_ITERATIONS)
+        trial[patch] = self.rest[patch] + u[patch]
+        grown = corrector.rigid_fallback(x0, trial, pose0, pose1, T0, T1, c, region=region)
+        chk = self.check(x0, trial)
+        if chk.pairs or chk.invalid.sum() >= invalid.sum():
+            return base, region
+        return trial, grown
 
 
 # ------------------------------------------------------------------------------------------------------ kernels
