@@ -288,13 +288,18 @@ class SelfContact:
                 # Invalid in x0 as well (the fallback's one unrepaired case): following x0, or returning to it, keeps
                 # the defect. These patches follow their neighbours' displacement from the rest instead: a rigid or
                 # affine motion of the surroundings is harmonic, so the patch takes its rest shape moved the same way.
-                u = _harmonic_fill(x - self.rest, inherited, *self.neighbours, FILL_ITERATIONS)
-                x[inherited] = self.rest[inherited] + u[inherited]
+                self._to_rest_shape(x, inherited)
         if r < PUSH_ROUNDS and chk.pairs:
             vid, push = self._pushes(chk, x0, x)
             keep = ~patch[vid]
             x[vid[keep]] += push[keep]
         return x
+
+    def _to_rest_shape(self, x: np.ndarray, patch: np.ndarray) -> None:
+        """In place: the ``patch`` rows (bool [N]) of ``x`` [N,3] take the harmonic fill of their neighbours'
+        displacement from the rest (the rest shape moved as the surroundings move)."""
+        u = _harmonic_fill(x - self.rest, patch, *self.neighbours, FILL_ITERATIONS)
+        x[patch] = self.rest[patch] + u[patch]
 
     def _inherited(self, chk: SelfCheck, x0: np.ndarray) -> np.ndarray:
         """Bool [N]: the vertices, and one ring, of triangles invalid in x0 and still invalid in the step's result."""
@@ -370,8 +375,7 @@ class SelfContact:
         patch[F[kept].ravel()] = True
         patch = _grow(patch, *self.neighbours) & ~region
         trial = base.copy()
-        u = _harmonic_fill(trial - self.rest, patch, *self.neighbours, FILL_ITERATIONS)
-        trial[patch] = self.rest[patch] + u[patch]
+        self._to_rest_shape(trial, patch)
         grown = corrector.rigid_fallback(x0, trial, pose0, pose1, T0, T1, c, region=region)
         chk = self.check(x0, trial)
         if chk.pairs or chk.invalid.sum() >= invalid.sum():
