@@ -836,6 +836,7 @@ class IPCSimulator:
             # kappa is state too: a cached settle must start frame 1 exactly like a computed one
             self.x[: self.n_obj], self.kappa, self.settle_steps, self.settle_converged = hit
             self.v = np.zeros((self.n_obj, 3))
+            self.linear = NewtonSystemSolver()
             return
         if self.ground is not None and not self.pinned.any():
             drop = float((self.x[self.surface, 2] - self.ground).min()) - 0.5 * self.dhat
@@ -858,6 +859,9 @@ class IPCSimulator:
                 self.settle_converged = True
                 break
         self.v = np.zeros((self.n_obj, 3))
+        # The linear solver's state (lagged factors, Jacobi given up) is state too: frame 1 starts from a fresh one
+        # whether the settle was computed or cached, or the same seed would give a different sequence to 1e-9 m.
+        self.linear = NewtonSystemSolver()
         if len(_SETTLE_CACHE) > 16:
             _SETTLE_CACHE.clear()
         _SETTLE_CACHE[key] = (self.x[: self.n_obj].copy(), self.kappa, self.settle_steps, self.settle_converged)
