@@ -156,6 +156,24 @@ def test_the_fallback_repairs_a_triangle_that_the_last_state_left_flipped(tool):
     np.testing.assert_array_equal(out.positions[far], x0[far])  # the fallback keeps x0 elsewhere
 
 
+def test_the_fallback_repairs_a_flipped_triangle_that_its_rigid_region_carries_with_the_tool(tool):
+    rest, F = patch(0.0)
+    h = SIZE / CELLS
+    centre = len(rest) // 2
+    x0 = rest + np.array([0.0, 0.0, 0.002])
+    x0[centre] += [1.6 * h, 0.4 * h, 0.003]  # flips its triangles; 5 mm high, under the tool
+    stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: straight to the fallback
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    top = x0[centre, 2] + 0.0005 + 0.008  # the sphere 0.5 mm above the raised vertex, then 0.3 mm lower
+    p0, p1 = pose(*x0[centre, :2], top), pose(*x0[centre, :2], top - 3e-4)
+    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
+    carried = corr.rigid_fallback(x0, x0.copy(), p0, p1, T0, T1, corr.clearance.clearance)
+    assert carried[F[stage.validity.invalid(x0)]].all()  # the rigid region holds the flipped triangles
+    out = stage.correct(corr, x0, x0.copy(), p0, p1, T0, T1)
+    assert out.fallback and out.invalid_before > 0
+    assert_clean(stage, F, x0, out, tool, T0, T1)  # they used to move rigidly with the tool, flipped
+
+
 def stage_counts(rest, F, x):
     return SurfaceValidity(F, rest).counts(x)
 

@@ -358,29 +358,46 @@ class SelfContact:
             # One ring more than needed: fewer rounds (each is a check) for the same guarantee.
             grow = _grow(grow, *self.neighbours)
             region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c, region=region | grow)
-        return self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, c)
+        return self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, clearance)
 
-    def _repair_kept(self, corrector: CollisionCorrector, x0, base, region, pose0, pose1, T0, T1, c: float
+    def _repair_kept(self, corrector: CollisionCorrector, x0, base, region, pose0, pose1, T0, T1, clearance: bool
                      ) -> tuple[np.ndarray, np.ndarray]:
-        """The fallback's result ``base`` with the triangles it keeps invalid outside its rigid region (invalid in
-        x0: the fallback keeps x0 there, so a defect would outlive every later step that falls back) taken to their
-        rest shape as in repair step 1, where that is safe: the tool certificate redone (the region may grow), the
-        full check of the step clean and fewer invalid triangles than in ``base``. Else ``base`` unchanged."""
+        """The fallback's result ``base`` with its invalid triangles taken to their rest shape as in repair step 1,
+        where that is safe: the result made tool-safe again, the full check of the step clean and fewer invalid
+        triangles than in ``base``. Else ``base`` unchanged.
+
+        Two tries. First every invalid triangle, then the tool pass: a triangle inside the rigid region was invalid
+        in x0 (the region moves rigidly from x0) and lies at the tool, where the rigid certificate would take it back
+        into the region; the pass pushes it out of the tool instead, and the try counts only if the pass did not
+        fall back. Then only the triangles outside the region (the fallback keeps x0 there), their patch kept off
+        the region, with the rigid certificate redone (the region may grow)."""
         F = self.surface.faces
         invalid = self.validity.invalid(base)
-        kept = invalid & ~region[F].all(axis=1)
-        if not kept.any():
+        if not invalid.any():
             return base, region
-        patch = np.zeros(self.n, dtype=np.bool_)
-        patch[F[kept].ravel()] = True
-        patch = _grow(patch, *self.neighbours) & ~region
-        trial = base.copy()
-        self._to_rest_shape(trial, patch)
-        grown = corrector.rigid_fallback(x0, trial, pose0, pose1, T0, T1, c, region=region)
-        chk = self.check(x0, trial)
-        if chk.pairs or chk.invalid.sum() >= invalid.sum():
-            return base, region
-        return trial, grown
+        c = corrector.clearance.clearance if clearance else 0.0
+        for everywhere in (True, False):
+            faces = invalid if everywhere else invalid & ~region[F].all(axis=1)
+            if not faces.any():
+                continue
+            patch = np.zeros(self.n, dtype=np.bool_)
+            patch[F[faces].ravel()] = True
+            patch = _grow(patch, *self.neighbours)
+            if not everywhere:
+                patch &= ~region
+            trial = base.copy()
+            self._to_rest_shape(trial, patch)
+            if everywhere:
+                tool = corrector.correct(x0, trial, pose0, pose1, T0, T1, clearance=clearance)
+                if tool.fallback:
+                    continue
+                trial, grown = tool.positions, region & ~patch
+            else:
+                grown = corrector.rigid_fallback(x0, trial, pose0, pose1, T0, T1, c, region=region)
+            chk = self.check(x0, trial)
+            if not chk.pairs and chk.invalid.sum() < invalid.sum():
+                return trial, grown
+        return base, region
 
 
 # ------------------------------------------------------------------------------------------------------ kernels
