@@ -174,6 +174,30 @@ def test_the_fallback_repairs_a_flipped_triangle_that_its_rigid_region_carries_w
     assert_clean(stage, F, x0, out, tool, T0, T1)  # they used to move rigidly with the tool, flipped
 
 
+def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pair_free_state(tool):
+    rest, F = patch(0.0)
+    x0 = rest + np.array([0.0, 0.0, 0.002])
+    stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: the input is the only checked state
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    p0, p1 = pose(0, 0, 0.002 + 0.008 + 3e-4), pose(3e-3, 0, 0.002 + 0.008 + 3e-4)  # a 3 mm drag over the surface
+    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
+    x1 = x0.copy()
+    b, c = (v for v in F[np.flatnonzero((F == 0).any(axis=1))[0]] if v != 0)
+    x1[0] += 0.95 * (0.5 * (x0[b] + x0[c]) - x0[0])  # the corner triangle, far from the tool, collapsed
+    x1 = corr.correct(x0, x1, p0, p1, T0, T1).positions
+    chk = stage.check(x0, x1)
+    assert chk.pairs == 0 and chk.invalid.sum() > 0
+    fallback = x0.copy()
+    region = corr.rigid_fallback(x0, fallback, p0, p1, T0, T1, corr.clearance.clearance)
+    assert stage.carried(x0, fallback, region) > stage.quiet  # the fallback would drag the region along
+    out = stage.correct(corr, x0, x1, p0, p1, T0, T1)
+    assert not out.fallback and out.invalid_after == int(chk.invalid.sum()) > 0  # counted, not hidden
+    np.testing.assert_array_equal(out.positions, x1)
+    assert not self_intersects(out.positions, F)
+    assert not tool_intersects(out.positions, F, T1, tool.faces)
+    assert tool_step_free(x0, out.positions, F, T0, T1, tool.faces)
+
+
 def stage_counts(rest, F, x):
     return SurfaceValidity(F, rest).counts(x)
 
