@@ -326,13 +326,15 @@ class SelfContact:
 
     def _inherited(self, chk: SelfCheck, x0: np.ndarray) -> np.ndarray:
         """Bool [N]: the vertices, and one ring, of triangles invalid in x0 and still invalid in the step's result."""
+        if not chk.invalid.any():
+            return np.zeros(self.n, dtype=np.bool_)
+        return self._face_ring(chk.invalid & self.validity.invalid(x0))
+
+    def _face_ring(self, faces: np.ndarray) -> np.ndarray:
+        """Bool [N]: the vertices of the triangles ``faces`` (bool [F]) and one ring around them."""
         mask = np.zeros(self.n, dtype=np.bool_)
-        if chk.invalid.any():
-            both = chk.invalid & self.validity.invalid(x0)
-            mask[self.surface.faces[both].ravel()] = True
-            if mask.any():
-                mask = _grow(mask, *self.neighbours)
-        return mask
+        mask[self.surface.faces[faces].ravel()] = True
+        return _grow(mask, *self.neighbours) if mask.any() else mask
 
     def _pushes(self, chk: SelfCheck, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Averaged displacements at t+1 (vertex ids [K], [K,3]) moving each flagged pair apart along its separation
@@ -403,9 +405,7 @@ class SelfContact:
             faces = invalid if everywhere else invalid & ~region[F].all(axis=1)
             if not faces.any():
                 continue
-            patch = np.zeros(self.n, dtype=np.bool_)
-            patch[F[faces].ravel()] = True
-            patch = _grow(patch, *self.neighbours)
+            patch = self._face_ring(faces)
             if not everywhere:
                 patch &= ~region
             trial = base.copy()
