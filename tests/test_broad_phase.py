@@ -1,12 +1,14 @@
 """Broad phase: box join, surface topology, SDF culling conservativeness, pipeline wiring."""
 
+import numba
 import numpy as np
 import pytest
 
 from colgnn_core.collision import exact
 from colgnn_core.collision.broad_phase import (CandidatePairs, Surface, ToolSDFBound, box_pairs, mesh_edges,
                                                step_candidates)
-from colgnn_core.collision.kernels import grid_join, grid_self_join
+from colgnn_core.collision.clearance import clearance_pairs
+from colgnn_core.collision.kernels import box_join, grid_join, grid_self_join, use_kernel_threads
 from colgnn_core.collision.pipeline import CollisionDetector, pair_points
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tools import make_tool
@@ -52,6 +54,35 @@ def test_grid_joins_match_brute_force(na, nb, size):
     own = grid_self_join(lo_a, hi_a)
     assert set(map(tuple, own)) == {(i, j) for i, j in brute_box_pairs(lo_a, hi_a, lo_a, hi_a) if i < j}
     assert len(own) == len(set(map(tuple, own)))
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="one core: numba runs one thread")
+def test_parallel_kernels_give_the_serial_result_at_any_thread_count():
+    rng = np.random.default_rng(7)
+    lo_a, lo_b = rng.uniform(0, 1, (3000, 3)), rng.uniform(0, 1, (2500, 3))
+    hi_a, hi_b = lo_a + rng.uniform(0, 0.1, (3000, 3)), lo_b + rng.uniform(0, 0.1, (2500, 3))
+    X0 = rng.uniform(0, 1, (400, 3))
+    X1 = X0 + rng.normal(0, 0.02, X0.shape)
+    faces = rng.integers(0, 400, (300, 3))
+    edges = rng.integers(0, 400, (500, 2))
+    vf, fv, ee = (np.stack([rng.integers(0, 400, 2000), rng.integers(0, n, 2000)], 1) for n in (300, 300, 500))
+
+    def run():
+        out = [box_join(lo_a, hi_a, lo_b, hi_b), grid_join(lo_a, hi_a, lo_b, hi_b), grid_self_join(lo_a, hi_a)]
+        out += list(clearance_pairs(X0, X1, X0[::-1].copy(), X1[::-1].copy(), vf, fv, ee, faces, edges, faces, edges,
+                                    5e-3, 0.4, 64))
+        return out
+
+    try:
+        assert use_kernel_threads(1) == 1
+        serial = run()
+        assert use_kernel_threads(2) == 2
+        parallel = run()
+    finally:
+        use_kernel_threads(numba.config.NUMBA_NUM_THREADS)
+    assert len(serial[0]) > 1000 and len(serial[2]) > 1000 and not serial[3].all() and serial[3].any()
+    for a, b in zip(serial, parallel):
+        np.testing.assert_array_equal(a, b)  # the same rows in the same order: results never depend on threads
 
 
 def test_surface_topology():

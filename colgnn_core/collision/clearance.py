@@ -28,10 +28,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
+from numba.extending import register_jitable
 
 from colgnn_core.collision.broad_phase import Surface, ToolSDFBound, step_candidates
-from colgnn_core.collision.kernels import lerp, point_triangle_distance, row3, segment_distance
+from colgnn_core.collision.kernels import JOIN_CHUNKS, lerp, point_triangle_distance, row3, segment_distance
 
 __all__ = ["CLEARANCE", "CLEARANCE_RATIO", "ClearanceResult", "StepClearance", "clearance_pairs", "warm_up_clearance"]
 
@@ -109,36 +110,42 @@ def _pair_clearance(is_ee, P0, P1, delta, rho, max_iterations):
     return False, t, d, d0
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def clearance_pairs(X0, X1, T0, T1, vf, fv, ee, faces, edges, tool_faces, tool_edges, delta, rho, max_iterations):
-    """ok [K], t [K], d [K], d0 [K] of :func:`_pair_clearance` for the pairs vf, fv, ee (stacked in that order)."""
+    """ok [K], t [K], d [K], d0 [K] of :func:`_pair_clearance` for the pairs vf, fv, ee (stacked in that order);
+    the pairs are independent and run in ``JOIN_CHUNKS`` blocks on numba's threads."""
     K = vf.shape[0] + fv.shape[0] + ee.shape[0]
     ok = np.empty(K, dtype=np.bool_)
     ts, ds, d0s = np.empty(K), np.empty(K), np.empty(K)
-    P0, P1 = np.empty((4, 3)), np.empty((4, 3))
-    r = 0
-    for k in range(vf.shape[0]):
-        v, g = vf[k, 0], vf[k, 1]
+    for c in prange(JOIN_CHUNKS):
+        P0, P1 = np.empty((4, 3)), np.empty((4, 3))
+        for r in range(c * K // JOIN_CHUNKS, (c + 1) * K // JOIN_CHUNKS):
+            _pair_points(r, X0, X1, T0, T1, vf, fv, ee, faces, edges, tool_faces, tool_edges, P0, P1)
+            ok[r], ts[r], ds[r], d0s[r] = _pair_clearance(r >= vf.shape[0] + fv.shape[0], P0, P1, delta, rho,
+                                                          max_iterations)
+    return ok, ts, ds, d0s
+
+
+@register_jitable
+def _pair_points(r, X0, X1, T0, T1, vf, fv, ee, faces, edges, tool_faces, tool_edges, P0, P1):
+    """Fill P0 / P1 [4,3] with row r of the stacked pairs (vf: object vertex, tool face; fv: tool vertex, object
+    face; ee: object edge, tool edge) at t = 0 / 1."""
+    nv, nf = vf.shape[0], fv.shape[0]
+    if r < nv:
+        v, g = vf[r, 0], vf[r, 1]
         P0[0], P1[0] = X0[v], X1[v]
         for j in range(3):
             P0[1 + j], P1[1 + j] = T0[tool_faces[g, j]], T1[tool_faces[g, j]]
-        ok[r], ts[r], ds[r], d0s[r] = _pair_clearance(False, P0, P1, delta, rho, max_iterations)
-        r += 1
-    for k in range(fv.shape[0]):
-        v, f = fv[k, 0], fv[k, 1]
+    elif r < nv + nf:
+        v, f = fv[r - nv, 0], fv[r - nv, 1]
         P0[0], P1[0] = T0[v], T1[v]
         for j in range(3):
             P0[1 + j], P1[1 + j] = X0[faces[f, j]], X1[faces[f, j]]
-        ok[r], ts[r], ds[r], d0s[r] = _pair_clearance(False, P0, P1, delta, rho, max_iterations)
-        r += 1
-    for k in range(ee.shape[0]):
-        e, h = ee[k, 0], ee[k, 1]
+    else:
+        e, h = ee[r - nv - nf, 0], ee[r - nv - nf, 1]
         for j in range(2):
             P0[j], P1[j] = X0[edges[e, j]], X1[edges[e, j]]
             P0[2 + j], P1[2 + j] = T0[tool_edges[h, j]], T1[tool_edges[h, j]]
-        ok[r], ts[r], ds[r], d0s[r] = _pair_clearance(True, P0, P1, delta, rho, max_iterations)
-        r += 1
-    return ok, ts, ds, d0s
 
 
 class StepClearance:

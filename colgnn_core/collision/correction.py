@@ -84,13 +84,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from colgnn_core.collision.broad_phase import Surface, ToolSDFBound
 from colgnn_core.collision.clearance import CLEARANCE_RATIO, StepClearance, warm_up_clearance
 from colgnn_core.collision.kernels import (barycentric_clamped, box_join, longest_edge, point_triangle, prim_boxes,
-                                           row_distance, row3, segment_distance, segment_params, sphere_bounds,
-                                           vertex_boxes)
+                                           prims_meeting_box, row_distance, row3, segment_distance, segment_params,
+                                           sphere_bounds, vertex_boxes)
 from colgnn_core.collision.pipeline import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
@@ -674,33 +674,51 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
     ehi += trig
     flo -= trig
     fhi += trig
-    all_tool = np.arange(T1.shape[0])
-    tvlo, tvhi = vertex_boxes(T1, T1, all_tool)
-    hsel = np.arange(tool_edges.shape[0])
+    # Only the tool's primitives that meet the candidates' region (their grown boxes' box) can pair with them.
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for blo, bhi in ((elo, ehi), (flo, fhi)):
+        for a in range(3):
+            if blo.shape[0]:
+                lo[a], hi[a] = min(lo[a], blo[:, a].min()), max(hi[a], bhi[:, a].max())
+    tsel = prims_meeting_box(T1, T1, np.arange(T1.shape[0]).reshape(-1, 1), lo, hi)
+    hsel = prims_meeting_box(T1, T1, tool_edges, lo, hi)
+    tvlo, tvhi = vertex_boxes(T1, T1, tsel)
     hlo, hhi = prim_boxes(T1, T1, tool_edges, hsel)
     pe = box_join(elo, ehi, hlo, hhi)
     ee = np.empty((pe.shape[0], 2), dtype=np.int64)
-    ee_dist, ee_alpha = np.empty(pe.shape[0]), np.empty(pe.shape[0])
-    k = 0
     for r in range(pe.shape[0]):
-        e, h = cand_e[pe[r, 0]], pe[r, 1]
-        d, alpha = segment_distance(row3(x1, edges[e, 0]), row3(x1, edges[e, 1]), row3(T1, tool_edges[h, 0]),
-                             row3(T1, tool_edges[h, 1]))
-        if d < trig:
-            ee[k, 0], ee[k, 1], ee_dist[k], ee_alpha[k] = e, h, d, alpha
-            k += 1
+        ee[r, 0], ee[r, 1] = cand_e[pe[r, 0]], hsel[pe[r, 1]]
+    ee_dist, ee_alpha = _edge_tool_distances(x1, T1, edges, tool_edges, ee)
+    ke = ee_dist < trig
     pf = box_join(tvlo, tvhi, flo, fhi)
     fv = np.empty((pf.shape[0], 2), dtype=np.int64)
-    fv_dist, fv_w = np.empty(pf.shape[0]), np.empty((pf.shape[0], 3))
-    j = 0
     for r in range(pf.shape[0]):
-        t, f = pf[r, 0], cand_f[pf[r, 1]]
-        d, w0, w1, w2 = point_triangle(row3(T1, t), row3(x1, faces[f, 0]), row3(x1, faces[f, 1]), row3(x1, faces[f, 2]))
-        if d < trig:
-            fv[j, 0], fv[j, 1], fv_dist[j] = t, f, d
-            fv_w[j, 0], fv_w[j, 1], fv_w[j, 2] = w0, w1, w2
-            j += 1
-    return ee[:k], ee_dist[:k], ee_alpha[:k], fv[:j], fv_dist[:j], fv_w[:j]
+        fv[r, 0], fv[r, 1] = tsel[pf[r, 0]], cand_f[pf[r, 1]]
+    fv_dist, fv_w = _tool_vertex_face_distances(x1, T1, faces, fv)
+    kf = fv_dist < trig
+    return ee[ke], ee_dist[ke], ee_alpha[ke], fv[kf], fv_dist[kf], fv_w[kf]
+
+
+@njit(cache=True, parallel=True)
+def _edge_tool_distances(x1, T1, edges, tool_edges, ee):
+    """(distance [K], alpha [K] on the object edge) of the rows (object edge, tool edge) of ``ee`` at t+1."""
+    dist, alpha = np.empty(ee.shape[0]), np.empty(ee.shape[0])
+    for r in prange(ee.shape[0]):
+        e, h = ee[r, 0], ee[r, 1]
+        dist[r], alpha[r] = segment_distance(row3(x1, edges[e, 0]), row3(x1, edges[e, 1]), row3(T1, tool_edges[h, 0]),
+                                             row3(T1, tool_edges[h, 1]))
+    return dist, alpha
+
+
+@njit(cache=True, parallel=True)
+def _tool_vertex_face_distances(x1, T1, faces, fv):
+    """(distance [K], barycentric weights [K,3]) of the rows (tool vertex, object face) of ``fv`` at t+1."""
+    dist, w = np.empty(fv.shape[0]), np.empty((fv.shape[0], 3))
+    for r in prange(fv.shape[0]):
+        t, f = fv[r, 0], fv[r, 1]
+        dist[r], w[r, 0], w[r, 1], w[r, 2] = point_triangle(row3(T1, t), row3(x1, faces[f, 0]), row3(x1, faces[f, 1]),
+                                                            row3(x1, faces[f, 2]))
+    return dist, w
 
 
 _KERNELS_READY = False

@@ -14,14 +14,27 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numba.extending import register_jitable
 
 ERROR_FACTOR = 32.0
 UNDERFLOW_GUARD = 2.0**-1000  # absolute slack for subnormal / underflowed products
 UNIT_ROUNDOFF = float(np.finfo(np.float64).eps / 2)
 BRUTE_FORCE_PAIRS = 4096  # box_join compares all pairs directly up to this many
+
+
+def use_kernel_threads(threads: int) -> int:
+    """Run the parallel kernels (the joins, the clearance CCD, the validity check) on ``threads`` of numba's threads,
+    at most ``NUMBA_NUM_THREADS`` (the machine's cores unless set); returns the count used.
+
+    numba keeps this per calling thread, so a caller that steps from another thread (a ROS executor) sets it there.
+    Results do not depend on it: the parallel loops write disjoint rows, and joins keep the serial order.
+    """
+    n = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
 
 
 # ---------------------------------------------------------------------------------------------- vector algebra
@@ -110,21 +123,25 @@ def quad_points(X0, X1, quads, k):
 
 
 # ------------------------------------------------------------------------------ boxes and distances
-@njit(cache=True)
+JOIN_CHUNKS = 8  # row blocks of a join run in parallel; fixed, so the output is the serial order at any thread count
+
+
+@njit(cache=True, parallel=True)
 def box_join(lo_a, hi_a, lo_b, hi_b):
     """Sort-and-sweep join of two box sets [Ka,3], [Kb,3] -> pairs [K,2].
 
     Along the axis where the boxes are smallest relative to the spread of their corners,
     two intervals overlap iff lo_b lies in [lo_a, hi_a] or lo_a lies in (lo_b, hi_b]: both
-    are contiguous runs of the sorted lower corners (the two cases are disjoint).
+    are contiguous runs of the sorted lower corners (the two cases are disjoint). Both sweeps run in
+    ``JOIN_CHUNKS`` row blocks on numba's threads (:func:`concat_pairs`: the serial order).
     """
     na, nb = lo_a.shape[0], lo_b.shape[0]
-    out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
     if na == 0 or nb == 0:
-        return out[:0]
-    n = 0
+        return np.empty((0, 2), dtype=np.int64)
     if na * nb <= BRUTE_FORCE_PAIRS:
         # Small sets: comparing all pairs is cheaper than sorting.
+        out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
+        n = 0
         for i in range(na):
             for j in range(nb):
                 if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
@@ -144,51 +161,89 @@ def box_join(lo_a, hi_a, lo_b, hi_b):
     ob = np.argsort(lo_b[:, k])
     sa = lo_a[oa, k]
     sb = lo_b[ob, k]
-    for i in range(na):
-        j = np.searchsorted(sb, lo_a[i, k])
-        while j < nb and sb[j] <= hi_a[i, k]:
-            jb = ob[j]
-            if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, jb):
+    blocks = [np.empty((0, 2), dtype=np.int64) for _ in range(2 * JOIN_CHUNKS)]
+    for c in prange(2 * JOIN_CHUNKS):
+        if c < JOIN_CHUNKS:  # a's boxes, each against the b boxes whose lower corner lies in its interval
+            blocks[c] = _sweep_rows(lo_a, hi_a, lo_b, hi_b, sb, ob, k, c * na // JOIN_CHUNKS,
+                                    (c + 1) * na // JOIN_CHUNKS, False)
+        else:  # b's boxes, each against the a boxes whose lower corner lies strictly inside its interval
+            c1 = c - JOIN_CHUNKS
+            blocks[c] = _sweep_rows(lo_b, hi_b, lo_a, hi_a, sa, oa, k, c1 * nb // JOIN_CHUNKS,
+                                    (c1 + 1) * nb // JOIN_CHUNKS, True)
+    return concat_pairs(blocks)
+
+
+@register_jitable
+def _sweep_rows(lo_q, hi_q, lo_s, hi_s, s_sorted, s_order, k, i0, i1, swapped):
+    """Pairs of query boxes i0..i1-1 with the boxes of the other set whose lower corner on axis k lies in the query's
+    interval (closed below, or open below when ``swapped``); rows (query, other), or (other, query) if swapped."""
+    out = np.empty((max(16, 2 * (i1 - i0)), 2), dtype=np.int64)
+    n = 0
+    ns = s_sorted.shape[0]
+    for i in range(i0, i1):
+        j = np.searchsorted(s_sorted, lo_q[i, k], side="right") if swapped else np.searchsorted(s_sorted, lo_q[i, k])
+        while j < ns and s_sorted[j] <= hi_q[i, k]:
+            js = s_order[j]
+            if boxes_overlap(lo_q, hi_q, i, lo_s, hi_s, js):
                 if n == out.shape[0]:
                     out = grow_pairs(out)
-                out[n, 0], out[n, 1] = i, jb
+                if swapped:
+                    out[n, 0], out[n, 1] = js, i
+                else:
+                    out[n, 0], out[n, 1] = i, js
                 n += 1
             j += 1
-    for jb in range(nb):
-        i = np.searchsorted(sa, lo_b[jb, k], side="right")
-        while i < na and sa[i] <= hi_b[jb, k]:
-            ia = oa[i]
-            if boxes_overlap(lo_a, hi_a, ia, lo_b, hi_b, jb):
-                if n == out.shape[0]:
-                    out = grow_pairs(out)
-                out[n, 0], out[n, 1] = ia, jb
-                n += 1
-            i += 1
-    return out[:n].copy()
+    return out[:n]
+
+
+@register_jitable
+def concat_pairs(blocks):
+    """The pair blocks [K_c,2] one after the other, in block order [sum K_c, 2]: a parallel join's blocks cover
+    consecutive rows, so this is the order of the serial loop."""
+    total = 0
+    for b in blocks:
+        total += b.shape[0]
+    out = np.empty((total, 2), dtype=np.int64)
+    n = 0
+    for b in blocks:
+        out[n:n + b.shape[0]] = b
+        n += b.shape[0]
+    return out
 
 
 GRID_CELLS_PER_BOX = 4  # grid_join: at most this many cells per box on average (the grid coarsens beyond)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def grid_join(lo_a, hi_a, lo_b, hi_b):
     """Uniform-grid join of two box sets [Ka,3], [Kb,3] -> pairs [K,2] (i, j) of overlapping closed boxes.
 
     The same pairs as :func:`box_join`, in another order. Faster where both sets are many small boxes packed in a
     region (a surface against its own neighbourhood): a box meets only the boxes in the cells it covers, where a
     sweep along one axis meets a whole slab. The cell is the sets' mean largest box extent, coarsened until the grid
-    has at most ``GRID_CELLS_PER_BOX`` cells per box; a pair is reported in the first cell both boxes cover.
+    has at most ``GRID_CELLS_PER_BOX`` cells per box; a pair is reported in the first cell both boxes cover. The rows
+    of ``a`` run in ``JOIN_CHUNKS`` blocks on numba's threads.
     """
     na, nb = lo_a.shape[0], lo_b.shape[0]
-    out = np.empty((max(16, 2 * (na + nb)), 2), dtype=np.int64)
     if na == 0 or nb == 0:
-        return out[:0]
+        return np.empty((0, 2), dtype=np.int64)
     org, dims, inv = _grid(lo_a, hi_a, lo_b, hi_b)
     cl, ch, start, ids = _grid_cells(lo_b, hi_b, org, dims, inv)
+    blocks = [np.empty((0, 2), dtype=np.int64) for _ in range(JOIN_CHUNKS)]
+    for c in prange(JOIN_CHUNKS):
+        blocks[c] = _grid_rows(lo_a, hi_a, lo_b, hi_b, org, dims, inv, cl, start, ids, c * na // JOIN_CHUNKS,
+                               (c + 1) * na // JOIN_CHUNKS)
+    return concat_pairs(blocks)
+
+
+@register_jitable
+def _grid_rows(lo_a, hi_a, lo_b, hi_b, org, dims, inv, cl, start, ids, i0, i1):
+    """Pairs (i, j) of :func:`grid_join` for the rows i0..i1-1 of ``a``."""
+    out = np.empty((max(16, 2 * (i1 - i0)), 2), dtype=np.int64)
     n = 0
     al = np.empty(3, dtype=np.int64)
     ah = np.empty(3, dtype=np.int64)
-    for i in range(na):
+    for i in range(i0, i1):
         for a in range(3):
             al[a] = min(max(int((lo_a[i, a] - org[a]) * inv), 0), dims[a] - 1)
             ah[a] = min(max(int((hi_a[i, a] - org[a]) * inv), 0), dims[a] - 1)
@@ -206,20 +261,29 @@ def grid_join(lo_a, hi_a, lo_b, hi_b):
                                 out = grow_pairs(out)
                             out[n, 0], out[n, 1] = i, j
                             n += 1
-    return out[:n].copy()
+    return out[:n]
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def grid_self_join(lo, hi):
     """Pairs [K,2] (i, j), i < j, of overlapping closed boxes within one set [K,3] (see :func:`grid_join`)."""
     nb = lo.shape[0]
-    out = np.empty((max(16, 4 * nb), 2), dtype=np.int64)
     if nb < 2:
-        return out[:0]
+        return np.empty((0, 2), dtype=np.int64)
     org, dims, inv = _grid(lo, hi, lo, hi)
     cl, ch, start, ids = _grid_cells(lo, hi, org, dims, inv)
+    blocks = [np.empty((0, 2), dtype=np.int64) for _ in range(JOIN_CHUNKS)]
+    for c in prange(JOIN_CHUNKS):
+        blocks[c] = _self_rows(lo, hi, dims, cl, ch, start, ids, c * nb // JOIN_CHUNKS, (c + 1) * nb // JOIN_CHUNKS)
+    return concat_pairs(blocks)
+
+
+@register_jitable
+def _self_rows(lo, hi, dims, cl, ch, start, ids, i0, i1):
+    """Pairs (i, j), j > i, of :func:`grid_self_join` for the rows i0..i1-1."""
+    out = np.empty((max(16, 4 * (i1 - i0)), 2), dtype=np.int64)
     n = 0
-    for i in range(nb):
+    for i in range(i0, i1):
         a0, a1, a2 = cl[i, 0], cl[i, 1], cl[i, 2]
         for x in range(a0, ch[i, 0] + 1):
             for y in range(a1, ch[i, 1] + 1):
@@ -234,7 +298,7 @@ def grid_self_join(lo, hi):
                                 out = grow_pairs(out)
                             out[n, 0], out[n, 1] = i, j
                             n += 1
-    return out[:n].copy()
+    return out[:n]
 
 
 @register_jitable
@@ -370,6 +434,26 @@ def prim_boxes(X0, X1, prims, ids):
 
 
 # ------------------------------------------------------------------------- segment and triangle distances
+@njit(cache=True, parallel=True)
+def prims_meeting_box(X0, X1, prims, lo, hi):
+    """Ids [K] of the primitives ``prims`` [P,m] (vertex ids) whose swept boxes over X0 -> X1 meet the box [lo, hi]
+    (without building the P boxes: this runs over the whole surface every step)."""
+    keep = np.zeros(prims.shape[0], dtype=np.bool_)
+    for k in prange(prims.shape[0]):
+        meets = True
+        for a in range(3):
+            b_lo, b_hi = np.inf, -np.inf
+            for i in range(prims.shape[1]):
+                v = prims[k, i]
+                b_lo = min(b_lo, X0[v, a], X1[v, a])
+                b_hi = max(b_hi, X0[v, a], X1[v, a])
+            if b_lo > hi[a] or b_hi < lo[a]:
+                meets = False
+                break
+        keep[k] = meets
+    return np.flatnonzero(keep)
+
+
 @register_jitable
 def row3(X, i):
     """Row i of an [N,3] array as an (x, y, z) tuple."""

@@ -73,13 +73,14 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
 from colgnn_core.collision.correction import CollisionCorrector
 from colgnn_core.collision.kernels import (grid_join, grid_self_join, point_triangle, point_triangle_distance,
-                                           prim_boxes, row3, segment_distance, segment_params, vertex_boxes)
+                                           prim_boxes, prims_meeting_box, row3, segment_distance, segment_params,
+                                           vertex_boxes)
 from colgnn_core.collision.surface_validity import SurfaceValidity
 from colgnn_core.errors import InputError
 
@@ -529,9 +530,9 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
     for a in range(3):  # the hot region's box (hot faces hold every hot vertex and edge), grown
         lo[a] = flo[:, a].min() - grow
         hi[a] = fhi[:, a].max() + grow
-    near_f = _near(X0, X1, faces, lo, hi)
-    near_e = _near(X0, X1, edges, lo, hi)
-    near_v = S[_near(X0, X1, S.reshape(-1, 1), lo, hi)]
+    near_f = prims_meeting_box(X0, X1, faces, lo, hi)
+    near_e = prims_meeting_box(X0, X1, edges, lo, hi)
+    near_v = S[prims_meeting_box(X0, X1, S.reshape(-1, 1), lo, hi)]
     cold_v = near_v[~hot[near_v]]  # hot vertices meet every near face in the first join
     cold_e = near_e[~hot_e[near_e]]  # hot edge pairs come from the self-join
     nflo, nfhi = prim_boxes(X0, X1, faces, near_f)
@@ -539,55 +540,40 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
     p1 = grid_join(vlo - grow, vhi + grow, nflo, nfhi)
     cvlo, cvhi = vertex_boxes(X0, X1, cold_v)
     p2 = grid_join(cvlo, cvhi, flo - grow, fhi + grow)
-    vf = np.empty((p1.shape[0] + p2.shape[0], 2), dtype=np.int64)
-    k = 0
-    for r in range(p1.shape[0]):
-        v, f = hv[p1[r, 0]], near_f[p1[r, 1]]
-        if not _in_face(v, faces, f):
-            vf[k, 0], vf[k, 1] = v, f
-            k += 1
-    for r in range(p2.shape[0]):
-        v, f = cold_v[p2[r, 0]], hf[p2[r, 1]]
-        if not _in_face(v, faces, f):
-            vf[k, 0], vf[k, 1] = v, f
-            k += 1
+    vf = np.concatenate((_map_pairs(p1, hv, near_f), _map_pairs(p2, cold_v, hf)))
     elo, ehi = prim_boxes(X0, X1, edges, he)
     p3 = grid_self_join(elo - 0.5 * grow, ehi + 0.5 * grow)  # two boxes grown by half: within grow of each other
     celo, cehi = prim_boxes(X0, X1, edges, cold_e)
     p4 = grid_join(elo - grow, ehi + grow, celo, cehi)
-    ee = np.empty((p3.shape[0] + p4.shape[0], 2), dtype=np.int64)
-    j = 0
-    for r in range(p3.shape[0]):
-        a, b = he[p3[r, 0]], he[p3[r, 1]]
-        if not _share(edges, a, b):
-            ee[j, 0], ee[j, 1] = a, b
-            j += 1
-    for r in range(p4.shape[0]):
-        a, b = he[p4[r, 0]], cold_e[p4[r, 1]]
-        if not _share(edges, a, b):
-            ee[j, 0], ee[j, 1] = a, b
-            j += 1
-    return vf[:k].copy(), ee[:j].copy()
+    ee = np.concatenate((_map_pairs(p3, he, he), _map_pairs(p4, he, cold_e)))
+    return vf[_vf_apart(vf, faces)], ee[_ee_apart(ee, edges)]
 
 
 @njit(cache=True)
-def _near(X0, X1, prims, lo, hi):
-    """Ids [K] of the primitives ``prims`` [P,m] (vertex ids) whose swept boxes over X0 -> X1 meet the box [lo, hi]
-    (without building the P boxes: this runs over the whole surface every step)."""
-    keep = np.zeros(prims.shape[0], dtype=np.bool_)
-    for k in range(prims.shape[0]):
-        meets = True
-        for a in range(3):
-            b_lo, b_hi = np.inf, -np.inf
-            for i in range(prims.shape[1]):
-                v = prims[k, i]
-                b_lo = min(b_lo, X0[v, a], X1[v, a])
-                b_hi = max(b_hi, X0[v, a], X1[v, a])
-            if b_lo > hi[a] or b_hi < lo[a]:
-                meets = False
-                break
-        keep[k] = meets
-    return np.flatnonzero(keep)
+def _map_pairs(p, ids_a, ids_b):
+    """[K,2]: the join's rows (i, j) [K,2] as (ids_a[i], ids_b[j])."""
+    out = np.empty_like(p)
+    for r in range(p.shape[0]):
+        out[r, 0], out[r, 1] = ids_a[p[r, 0]], ids_b[p[r, 1]]
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _vf_apart(vf, faces):
+    """Bool [K]: (vertex, face) pairs whose vertex is not a corner of the face."""
+    keep = np.empty(vf.shape[0], dtype=np.bool_)
+    for r in prange(vf.shape[0]):
+        keep[r] = not _in_face(vf[r, 0], faces, vf[r, 1])
+    return keep
+
+
+@njit(cache=True, parallel=True)
+def _ee_apart(ee, edges):
+    """Bool [K]: (edge, edge) pairs without a common vertex."""
+    keep = np.empty(ee.shape[0], dtype=np.bool_)
+    for r in prange(ee.shape[0]):
+        keep[r] = not _share(edges, ee[r, 0], ee[r, 1])
+    return keep
 
 
 def _close_pairs(X, vf, ee, faces, edges, reach) -> tuple:
@@ -600,13 +586,13 @@ def _close_pairs(X, vf, ee, faces, edges, reach) -> tuple:
     return vf[near[:nv]], dv[:nv][near[:nv]], ee[near[nv:]], dv[nv:][near[nv:]], gap
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _rest_pairs_needed(pairs, d_rest, dev, hot, faces, edges, is_ee, clearance):
     """Bool [K]: rest-close pairs to examine this step. A pair with a hot vertex is examined with the hot primitives;
     a quiet one only if its rest distance minus the largest deviation from rest of each primitive's vertices (``dev``
     [N], m, over both ends: it bounds every point's deviation during the step) is not above ``clearance``."""
     keep = np.zeros(pairs.shape[0], dtype=np.bool_)
-    for k in range(pairs.shape[0]):
+    for k in prange(pairs.shape[0]):
         if is_ee:
             a = (edges[pairs[k, 0], 0], edges[pairs[k, 0], 1])
             b = (edges[pairs[k, 1], 0], edges[pairs[k, 1], 1], edges[pairs[k, 1], 1])

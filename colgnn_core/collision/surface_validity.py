@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from colgnn_core.errors import InputError
 
@@ -78,12 +78,12 @@ def best_rotation(X: np.ndarray, rest: np.ndarray, ids: np.ndarray | None = None
     return np.ascontiguousarray((U @ np.diag([1.0, 1.0, d]) @ Vt).T)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _face_codes(X, Q, faces, rest_normals, rest_lengths, max_stretch, min_area_ratio):
     """Per-face defect bits (FLIPPED | COLLAPSED | TORN) [F] int8 of positions X [N,3], Q [3,3] the alignment."""
     F = faces.shape[0]
     out = np.zeros(F, dtype=np.int8)
-    for f in range(F):
+    for f in prange(F):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         e0 = (X[b, 0] - X[a, 0], X[b, 1] - X[a, 1], X[b, 2] - X[a, 2])
         e1 = (X[c, 0] - X[a, 0], X[c, 1] - X[a, 1], X[c, 2] - X[a, 2])

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from colgnn_core.collision import CollisionDetector
+from colgnn_core.collision.kernels import use_kernel_threads
 from colgnn_core.errors import InputError
 from colgnn_core.io import ensure_writable_dir
 from colgnn_core.learn.checkpoint import CheckpointMeta, save_checkpoint, simulator_from_payload
@@ -527,6 +528,7 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
         if int(threads) < 1:
             raise InputError(f"threads must be >= 1, got {threads}")
         torch.set_num_threads(int(threads))
+        use_kernel_threads(int(threads))
     data_dir = Path(data_dir)
     out_ckpt = Path(out_ckpt)
     scene = _resolve_scene(scene, data_dir, resolution)

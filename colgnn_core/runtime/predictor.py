@@ -46,6 +46,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, CollisionCorrector
+from colgnn_core.collision.kernels import use_kernel_threads
 from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import interpolate_poses, pose_path
@@ -245,7 +246,8 @@ class Predictor:
         scene: the Scene it belongs to.
         correction: run the collision-aware correction (False: the raw network, still validated/subdivided).
         max_substeps: most model steps one ``step`` call may take for a large jump.
-        threads: torch intra-op threads (set process-wide).
+        threads: torch intra-op threads (set process-wide), and the collision kernels' numba threads (set per
+            stepping thread, :func:`~colgnn_core.collision.kernels.use_kernel_threads`).
         max_iterations: correction passes before the safe fallback; default the scene's
             ``[correction] max_iterations`` (:func:`correction_iterations`).
         step_limits: (max translation m, max rotation rad) per model step; default from the
@@ -299,6 +301,7 @@ class Predictor:
         self._rest_tree = None  # k-d tree of the rest graph nodes (built on first need)
         self.max_substeps = int(max_substeps)
         self.threads = torch.get_num_threads()
+        use_kernel_threads(self.threads)  # the collision kernels use the same cores as the network
         self.max_translation, self.max_rotation = (tool_step_limits(scene, loaded.extra) if step_limits is None
                                                    else (float(step_limits[0]), float(step_limits[1])))
         if not (self.max_translation > 0 and self.max_rotation > 0):
@@ -459,6 +462,7 @@ class Predictor:
     def step(self, tool_pose) -> StepResult:
         """Advance to ``tool_pose`` [7] and return the published state (InputError: state unchanged)."""
         t_start = time.perf_counter()
+        use_kernel_threads(self.threads)  # numba's count is per thread: a ROS executor may step from another
         pose, n = self.check(tool_pose)
         start = self.net.state.pose
         subposes = interpolate_poses(start, pose, np.arange(1, n + 1) / n) if n > 1 else pose[None]
