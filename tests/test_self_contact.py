@@ -7,8 +7,6 @@ self-contact filtered out (``tool_intersects``), ``is_step_collision_free`` on t
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -198,26 +196,6 @@ def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pai
     assert not self_intersects(out.positions, F)
     assert not tool_intersects(out.positions, F, T1, tool.faces)
     assert tool_step_free(x0, out.positions, F, T0, T1, tool.faces)
-
-
-def test_a_repaired_triangle_that_the_tool_pass_flips_again_follows_the_pass_as_one_piece():
-    """A step captured from 1,500 random steps of the shipped cone_bunny model (tests/data/cone_bunny_flip_step.npz):
-    a triangle at the cone's side, 60 degrees from its rest normal, which every repair made valid and the next tool
-    pass flipped again by pushing two of its corners (six rounds, then a pair-free state with the flipped triangle).
-    With the patch following the pass's push it is clean in two rounds, for itself and for the tool."""
-    from colgnn_core.runtime.predictor import Predictor
-
-    d = np.load(Path(__file__).parent / "data" / "cone_bunny_flip_step.npz")
-    p = Predictor.from_checkpoint("cone_bunny", threads=1, self_contact=True)
-    stage, corr, tool = p.self_contact, p.corrector, p.scene.tool
-    T0, T1 = tool.world_vertices(d["pose0"]), tool.world_vertices(d["pose1"])
-    x0, x1 = d["x0"], d["x1"]
-    assert stage.validity.counts(x0).invalid == 0 and stage.check(x0, x1).invalid.sum() > 0
-    out = stage.correct(corr, x0, x1, d["pose0"], d["pose1"], T0, T1)
-    assert not out.fallback and out.rounds <= 3
-    F = stage.surface.faces
-    assert_clean(stage, F, x0, out, tool, T0, T1)
-    assert not self_intersects(out.positions, F)
 
 
 def stage_counts(rest, F, x):

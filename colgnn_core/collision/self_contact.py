@@ -29,10 +29,7 @@ Repair, up to ``max_rounds`` rounds, each followed by the tool pass:
    ``FILL_ROUNDS`` on they return to x0 (valid) instead. A triangle invalid in x0 as well (left by the fallback's
    one unrepaired case below) cannot be repaired relative to x0: its vertices and a ring take their neighbours'
    displacement *from the rest* (any rigid or affine motion of the surroundings is reproduced exactly, so the patch
-   gets its rest shape moved with them), in every round. Where the last round's tool pass pushed vertices of the
-   patch, the patch and one more ring then move by the largest of those pushes, as one translation: the pass
-   pushes each vertex out of the tool on its own, and on a sharp tool's side it pushed two corners of a repaired
-   triangle and flipped it again in every round;
+   gets its rest shape moved with them), in every round;
 2. self pairs: moved apart at t+1 along their separation at the time t* the CCD found, by
    (SELF_TARGET - d*) / t* split over the pair's four vertices with minimal-norm barycentric weights (the tool
    pass's pushes, both primitives movable); from round ``PUSH_ROUNDS`` on the pair's vertices and a ring
@@ -249,7 +246,6 @@ class SelfContact:
         out = SelfResult(positions=x)
         clean = False
         pair_free: tuple[int, np.ndarray] | None = None  # (invalid triangles, state): the best pair-free state
-        push: np.ndarray | None = None  # [N,3] what the last tool pass moved (m)
         for r in range(self.max_rounds + 1):
             t = time.perf_counter()
             chk = self.check(x0, x)
@@ -265,12 +261,11 @@ class SelfContact:
             if r == self.max_rounds:
                 break
             t = time.perf_counter()
-            x = self._repair(chk, x0, x, r, push)
+            x = self._repair(chk, x0, x, r)
             ms["repair"] += 1e3 * (time.perf_counter() - t)
             t = time.perf_counter()
             c = corrector.correct(x0, x, pose0, pose1, T0, T1, clearance=clearance)
             ms["tool"] += 1e3 * (time.perf_counter() - t)
-            push = None if c.fallback else c.positions - x  # a fallback's rigid motion is no push to follow
             x = c.positions
             out.tool_fallback |= c.fallback
         if not clean:
@@ -296,9 +291,8 @@ class SelfContact:
             return 0.0
         return float(np.sqrt(((x[region] - x0[region]) ** 2).sum(axis=1)).max())
 
-    def _repair(self, chk: SelfCheck, x0: np.ndarray, x: np.ndarray, r: int, push: np.ndarray | None = None
-                ) -> np.ndarray:
-        """One repair round (module docstring) on a copy of x; ``push`` [N,3] (m): what the last tool pass moved."""
+    def _repair(self, chk: SelfCheck, x0: np.ndarray, x: np.ndarray, r: int) -> np.ndarray:
+        """One repair round (module docstring) on a copy of x."""
         F = self.surface.faces
         x = x.copy()
         patch = np.zeros(self.n, dtype=np.bool_)
@@ -319,25 +313,11 @@ class SelfContact:
                 # the defect. These patches follow their neighbours' displacement from the rest instead: a rigid or
                 # affine motion of the surroundings is harmonic, so the patch takes its rest shape moved the same way.
                 self._to_rest_shape(x, inherited)
-        if push is not None and chk.invalid.any():
-            self._follow_tool(x, chk.invalid, push)
         if r < PUSH_ROUNDS and chk.pairs:
-            vid, step = self._pushes(chk, x0, x)
+            vid, push = self._pushes(chk, x0, x)
             keep = ~patch[vid]
-            x[vid[keep]] += step[keep]
+            x[vid[keep]] += push[keep]
         return x
-
-    def _follow_tool(self, x: np.ndarray, invalid: np.ndarray, push: np.ndarray) -> None:
-        """In place: where the last tool pass pushed vertices of the ``invalid`` triangles' patch (the triangles'
-        vertices and one ring), the patch and one more ring take its largest push ([N,3] m) as one translation.
-
-        The pass pushes each vertex out of the tool on its own, and on a sharp tool's side it pushed two corners of
-        a just-repaired triangle and flipped it again, round after round (module docstring, step 1); moved as one
-        piece, the repaired triangles keep their shape and the next pass has less to push."""
-        patch = self._face_ring(invalid)
-        size = np.where(patch, np.einsum("ij,ij->i", push, push), 0.0)
-        if size.max() > 0.0:
-            x[_grow(patch, *self.neighbours)] += push[int(np.argmax(size))]
 
     def _to_rest_shape(self, x: np.ndarray, patch: np.ndarray) -> None:
         """In place: the ``patch`` rows (bool [N]) of ``x`` [N,3] take the harmonic fill of their neighbours'
