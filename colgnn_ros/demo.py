@@ -183,6 +183,8 @@ def node_parameters(scene: str, checkpoint: Path, args: argparse.Namespace) -> l
         params["threads"] = str(args.threads)
     if args.foxglove:
         params["foxglove_port"] = str(args.foxglove)
+    if args.self_contact is not None:
+        params["self_contact"] = str(args.self_contact).lower()
     return [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
 
 
@@ -367,6 +369,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=10.0, help="seconds of poses to record (default 10)")
     ap.add_argument("--threads", type=int, default=None, help="the node's torch threads (default: the node's, chosen "
                     "for the machine)")
+    ap.add_argument("--self-contact", action=argparse.BooleanOptionalAction, default=None,
+                    help="the node's self-contact stage on or off (default: the scene's [correction] self_contact)")
     ap.add_argument("--foxglove", type=int, default=0, metavar="PORT",
                     help="also stream the scene live to Foxglove on ws://localhost:PORT (default 0: off)")
     ap.add_argument("--docs", default=None, help="also write DOCS/DEMO.md and DOCS/img/demo.png (make demo: docs)")

@@ -359,9 +359,11 @@ def test_demo_records_renders_and_summarises(tmp_path, checkpoint):
 
     env = {k: v for k, v in os.environ.items() if k != "ROS_DOMAIN_ID"}  # the demo picks a private domain
     env["PYTHONPATH"] = str(REPO)
+    # The tiny model is untrained: its steps tear, and the self-contact stage (cone_bunny's default) can then take
+    # seconds in one step (its fallback, measured 2.1 s). That is not what this test is about.
     res = subprocess.run([PY, "-m", "colgnn_ros.demo", "--scene", SCENE, "--checkpoint", checkpoint,
                           "--duration", "1.0", "--out", str(tmp_path / "demo"), "--docs", str(tmp_path / "docs"),
-                          "--command", "make demo"],
+                          "--command", "make demo", "--no-self-contact"],
                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     out = tmp_path / "demo"
