@@ -22,6 +22,7 @@ from colgnn_core.evaluation.collision_speed import bench_collision, format_bench
 from colgnn_core.evaluation.fit import fit
 from colgnn_core.evaluation.frontier import format_frontier, frontier
 from colgnn_core.evaluation.model_card import model_cards, models_markdown, write_models_section
+from colgnn_core.evaluation.provenance import code_version
 from colgnn_core.evaluation.render import render_file, render_scene, render_strip
 from colgnn_core.evaluation.report import results
 from colgnn_core.evaluation.speed import bench, format_bench
@@ -512,6 +513,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser, handlers = build_parser()
     args = parser.parse_args(argv)
     args.invocation = "colgnn " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    code_version()  # pinned now: the pages a long run writes at its end name the code it started with
     try:
         return handlers[args.command](args)
     except InputError as exc:

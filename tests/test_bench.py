@@ -100,3 +100,26 @@ def test_stability_markdown_writes_one_row_per_scene_and_keeps_the_prose(tmp_pat
     assert "| `other` (ci) | no | 5 + 2 | 0 (3) | 1 | – |" in text and "not recorded" in text
     assert main(["bench", "--stability", "--scene", "all", "--markdown", str(page)]) == 2
     assert "one scene at a time" in capsys.readouterr().err
+
+
+def test_the_code_version_stays_the_one_the_process_started_with(tmp_path):
+    """A long run stamps its page at the end: a commit made meanwhile is not the code it ran."""
+    import subprocess
+
+    from colgnn_core.evaluation.provenance import code_version
+
+    def git(*a):
+        return subprocess.run(["git", "-C", str(tmp_path), *a], capture_output=True, text=True, check=True).stdout
+
+    git("init", "-q")
+    git("config", "user.email", "t@example.com")
+    git("config", "user.name", "t")
+    (tmp_path / "a.py").write_text("x = 1\n")
+    git("add", "a.py")
+    git("commit", "-q", "-m", "one")
+    first = code_version(tmp_path)
+    assert first == git("rev-parse", "--short", "HEAD").strip()
+    (tmp_path / "a.py").write_text("x = 2\n")
+    git("commit", "-q", "-am", "two")
+    assert git("rev-parse", "--short", "HEAD").strip() != first
+    assert code_version(tmp_path) == first

@@ -33,10 +33,23 @@ def load_average() -> float | None:
     return float(os.getloadavg()[0]) if hasattr(os, "getloadavg") else None
 
 
+_VERSIONS: dict[Path, str] = {}  # repo -> its version at this process's first call
+
+
 def code_version(repo: Path | None = None) -> str:
-    """The git commit of the code (``abc1234``, ``+dirty`` with uncommitted changes outside ``docs/`` and the
-    markdown pages), or ``unknown``."""
+    """The git commit of the code this process runs (``abc1234``, ``+dirty`` with uncommitted changes outside
+    ``docs/`` and the markdown pages), or ``unknown``.
+
+    The first answer in a process is kept: a measurement that runs for an hour stamps its page at the end, and a
+    commit made meanwhile is not the code it ran (a stability row was once stamped with a revert made during its
+    run). The CLI asks at start-up."""
     repo = Path(repo) if repo is not None else Path(__file__).resolve().parents[2]
+    if repo not in _VERSIONS:
+        _VERSIONS[repo] = _git_version(repo)
+    return _VERSIONS[repo]
+
+
+def _git_version(repo: Path) -> str:
     try:
         head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True, timeout=10, check=True).stdout.strip()
