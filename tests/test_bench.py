@@ -95,7 +95,7 @@ def test_stability_markdown_writes_one_row_per_scene_and_keeps_the_prose(tmp_pat
     text = page.read_text()
     assert text.startswith("# Stability\n\nProse that stays.\n") and text.rstrip().endswith("Closing prose.")
     assert "old table" not in text and text.count("<!-- begin stability -->") == 1
-    assert f"| `{fx.SCENE}` (ci) | yes | 12 + {r['leave_and_settle_steps']} |" in text  # cone_bunny's default stage
+    assert f"| `{fx.SCENE}` (ci) | no | 12 + {r['leave_and_settle_steps']} |" in text
     assert f"| {r['tool_intersecting_frames']} ({r['checked_frames']}) |" in text
     assert "| `other` (ci) | no | 5 + 2 | 0 (3) | 1 | – |" in text and "not recorded" in text
     assert main(["bench", "--stability", "--scene", "all", "--markdown", str(page)]) == 2
