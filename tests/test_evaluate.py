@@ -163,13 +163,13 @@ def test_frontier_points_table_and_plot(tmp_path, capsys):
 
 
 def test_the_self_contact_stage_follows_the_scene_unless_asked(tmp_path):
-    """cone_bunny runs the self-contact stage (its TOML); --no-self-contact leaves it out of every corrected rollout,
+    """cone_bunny leaves the self-contact stage off (its TOML); --self-contact runs it in every corrected rollout,
     and the report says which was measured."""
     args = ["evaluate", "--scene", fx.SCENE, "--checkpoint", str(fx.trained_checkpoint("full")),
             "--data", str(fx.dataset_dir()), "--no-exact", "--max-sequences", "1", "--quiet"]
     assert main(args + ["--out", str(tmp_path / "default")]) == 0
-    assert main(args + ["--out", str(tmp_path / "off"), "--no-self-contact"]) == 0
-    default, off = (json.loads((tmp_path / k / "metrics.json").read_text()) for k in ("default", "off"))
-    assert default["self_contact"] is True and off["self_contact"] is False
-    assert "self-contact stage on" in (tmp_path / "default" / "metrics.md").read_text()
-    assert "self-contact stage off" in (tmp_path / "off" / "metrics.md").read_text()
+    assert main(args + ["--out", str(tmp_path / "on"), "--self-contact"]) == 0
+    default, on = (json.loads((tmp_path / k / "metrics.json").read_text()) for k in ("default", "on"))
+    assert default["self_contact"] is False and on["self_contact"] is True
+    assert "self-contact stage off" in (tmp_path / "default" / "metrics.md").read_text()
+    assert "self-contact stage on" in (tmp_path / "on" / "metrics.md").read_text()

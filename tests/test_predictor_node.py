@@ -100,7 +100,7 @@ def test_parameters_have_descriptors_and_dt_comes_from_the_checkpoint(ros, check
         assert n._timer.timer_period_ns == round(n.dt * 1e9)
         assert n.predictor.correction and n.predictor.max_substeps == 16
         assert n.predictor.rest_relaxation == RECOMMENDED_REST_RELAXATION == n.get_parameter("rest_relaxation").value
-        assert n.get_parameter("self_contact").value is True and n.predictor.self_contact is not None  # cone_bunny's
+        assert n.get_parameter("self_contact").value is False and n.predictor.self_contact is None  # cone_bunny's
     finally:
         n.destroy_node()
 
