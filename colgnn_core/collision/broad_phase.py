@@ -49,7 +49,8 @@ import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
-from colgnn_core.collision.kernels import box_join, longest_edge, prim_boxes, row_distance, sphere_bounds, vertex_boxes
+from colgnn_core.collision.kernels import (box_join, longest_edge, map_pairs, prim_boxes, row_distance, sphere_bounds,
+                                           vertex_boxes)
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 
@@ -427,7 +428,7 @@ def _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, faces, edges, tool_
     vf = box_join(vlo, vhi, tflo, tfhi)
     fv = box_join(tvlo, tvhi, flo, fhi)
     ee = box_join(elo, ehi, telo, tehi)
-    return _map_pairs(vf, near_v, gsel), _map_pairs(fv, vsel, near_f), _map_pairs(ee, near_e, hsel)
+    return map_pairs(vf, near_v, gsel), map_pairs(fv, vsel, near_f), map_pairs(ee, near_e, hsel)
 
 
 @register_jitable
@@ -440,15 +441,6 @@ def _meeting_region(prims, side):
             common &= side[prims[p, i]]
         keep[p] = common == 0
     return np.flatnonzero(keep)
-
-
-@register_jitable
-def _map_pairs(pairs, ids_a, ids_b):
-    out = np.empty_like(pairs)
-    for k in range(pairs.shape[0]):
-        out[k, 0] = ids_a[pairs[k, 0]]
-        out[k, 1] = ids_b[pairs[k, 1]]
-    return out
 
 
 def warm_up_broad_phase(X: np.ndarray, surface: Surface) -> None:

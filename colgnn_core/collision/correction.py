@@ -88,9 +88,9 @@ from numba import njit, prange
 
 from colgnn_core.collision.broad_phase import Surface, ToolSDFBound
 from colgnn_core.collision.clearance import CLEARANCE_RATIO, StepClearance, warm_up_clearance
-from colgnn_core.collision.kernels import (barycentric_clamped, box_join, longest_edge, point_triangle, prim_boxes,
-                                           prims_meeting_box, row_distance, row3, segment_distance, segment_params,
-                                           sphere_bounds, vertex_boxes)
+from colgnn_core.collision.kernels import (barycentric_clamped, box_join, longest_edge, map_pairs, point_triangle,
+                                           prim_boxes, prims_meeting_box, row_distance, row3, segment_distance,
+                                           segment_params, sphere_bounds, vertex_boxes)
 from colgnn_core.collision.pipeline import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
@@ -685,15 +685,11 @@ def _proximity_pairs(x1, T1, S, sdf, level, lmax, trig, edges, faces, ve_off, ve
     tvlo, tvhi = vertex_boxes(T1, T1, tsel)
     hlo, hhi = prim_boxes(T1, T1, tool_edges, hsel)
     pe = box_join(elo, ehi, hlo, hhi)
-    ee = np.empty((pe.shape[0], 2), dtype=np.int64)
-    for r in range(pe.shape[0]):
-        ee[r, 0], ee[r, 1] = cand_e[pe[r, 0]], hsel[pe[r, 1]]
+    ee = map_pairs(pe, cand_e, hsel)
     ee_dist, ee_alpha = _edge_tool_distances(x1, T1, edges, tool_edges, ee)
     ke = ee_dist < trig
     pf = box_join(tvlo, tvhi, flo, fhi)
-    fv = np.empty((pf.shape[0], 2), dtype=np.int64)
-    for r in range(pf.shape[0]):
-        fv[r, 0], fv[r, 1] = tsel[pf[r, 0]], cand_f[pf[r, 1]]
+    fv = map_pairs(pf, tsel, cand_f)
     fv_dist, fv_w = _tool_vertex_face_distances(x1, T1, faces, fv)
     kf = fv_dist < trig
     return ee[ke], ee_dist[ke], ee_alpha[ke], fv[kf], fv_dist[kf], fv_w[kf]

@@ -197,6 +197,16 @@ def _sweep_rows(lo_q, hi_q, lo_s, hi_s, s_sorted, s_order, k, i0, i1, swapped):
 
 
 @register_jitable
+def map_pairs(pairs, ids_a, ids_b):
+    """[K,2]: a join's rows (i, j) [K,2] as (ids_a[i], ids_b[j]) (the joined boxes' primitive ids)."""
+    out = np.empty_like(pairs)
+    for k in range(pairs.shape[0]):
+        out[k, 0] = ids_a[pairs[k, 0]]
+        out[k, 1] = ids_b[pairs[k, 1]]
+    return out
+
+
+@register_jitable
 def concat_pairs(blocks):
     """The pair blocks [K_c,2] one after the other, in block order [sum K_c, 2]: a parallel join's blocks cover
     consecutive rows, so this is the order of the serial loop."""

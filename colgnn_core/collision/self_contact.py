@@ -79,8 +79,8 @@ from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
 from colgnn_core.collision.correction import CollisionCorrector
 from colgnn_core.collision.kernels import (grid_join, grid_self_join, point_triangle, point_triangle_distance,
-                                           prim_boxes, prims_meeting_box, row3, segment_distance, segment_params,
-                                           vertex_boxes)
+                                           map_pairs, prim_boxes, prims_meeting_box, row3, segment_distance,
+                                           segment_params, vertex_boxes)
 from colgnn_core.collision.surface_validity import SurfaceValidity
 from colgnn_core.errors import InputError
 
@@ -540,22 +540,13 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
     p1 = grid_join(vlo - grow, vhi + grow, nflo, nfhi)
     cvlo, cvhi = vertex_boxes(X0, X1, cold_v)
     p2 = grid_join(cvlo, cvhi, flo - grow, fhi + grow)
-    vf = np.concatenate((_map_pairs(p1, hv, near_f), _map_pairs(p2, cold_v, hf)))
+    vf = np.concatenate((map_pairs(p1, hv, near_f), map_pairs(p2, cold_v, hf)))
     elo, ehi = prim_boxes(X0, X1, edges, he)
     p3 = grid_self_join(elo - 0.5 * grow, ehi + 0.5 * grow)  # two boxes grown by half: within grow of each other
     celo, cehi = prim_boxes(X0, X1, edges, cold_e)
     p4 = grid_join(elo - grow, ehi + grow, celo, cehi)
-    ee = np.concatenate((_map_pairs(p3, he, he), _map_pairs(p4, he, cold_e)))
+    ee = np.concatenate((map_pairs(p3, he, he), map_pairs(p4, he, cold_e)))
     return vf[_vf_apart(vf, faces)], ee[_ee_apart(ee, edges)]
-
-
-@njit(cache=True)
-def _map_pairs(p, ids_a, ids_b):
-    """[K,2]: the join's rows (i, j) [K,2] as (ids_a[i], ids_b[j])."""
-    out = np.empty_like(p)
-    for r in range(p.shape[0]):
-        out[r, 0], out[r, 1] = ids_a[p[r, 0]], ids_b[p[r, 1]]
-    return out
 
 
 @njit(cache=True, parallel=True)
