@@ -12,7 +12,7 @@ import pytest
 
 from colgnn_core.collision.correction import CollisionCorrector
 from colgnn_core.collision.exact import self_intersects, tool_intersects, tool_step_free
-from colgnn_core.collision.self_contact import SELF_CLEARANCE, SelfContact
+from colgnn_core.collision.self_contact import GROW_DOUBLING, SELF_CLEARANCE, SelfContact
 from colgnn_core.collision.surface_validity import MAX_STRETCH, SurfaceValidity
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tools import make_tool
@@ -20,20 +20,20 @@ from colgnn_core.geometry.tools import make_tool
 SIZE, CELLS = 0.04, 8  # m, grid cells per side of a patch
 
 
-def patch(z: float, offset: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """A flat square grid patch at height z (m): vertices [(CELLS+1)^2,3], faces [2 CELLS^2,3] (normal +z)."""
-    g = np.linspace(-SIZE / 2, SIZE / 2, CELLS + 1)
+def patch(z: float, offset: int = 0, cells: int = CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """A flat square grid patch at height z (m): vertices [(cells+1)^2,3], faces [2 cells^2,3] (normal +z)."""
+    g = np.linspace(-SIZE / 2, SIZE / 2, cells + 1)
     xx, yy = np.meshgrid(g, g, indexing="ij")
     V = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)], axis=1)
-    idx = np.arange(V.shape[0]).reshape(CELLS + 1, CELLS + 1)
+    idx = np.arange(V.shape[0]).reshape(cells + 1, cells + 1)
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + offset
     return V, F
 
 
-def two_patches(gap: float = 0.006) -> tuple[np.ndarray, np.ndarray]:
-    Va, Fa = patch(0.0)
-    Vb, Fb = patch(gap, offset=len(Va))
+def two_patches(gap: float = 0.006, cells: int = CELLS) -> tuple[np.ndarray, np.ndarray]:
+    Va, Fa = patch(0.0, cells=cells)
+    Vb, Fb = patch(gap, offset=len(Va), cells=cells)
     return np.vstack([Va, Vb]), np.vstack([Fa, Fb])
 
 
@@ -237,6 +237,28 @@ def test_fallback_is_clean_for_self_and_tool(tool):
     # Outside the region the surface stays where it was.
     still = np.linalg.norm(out.positions - rest, axis=1) == 0
     assert still.sum() >= len(rest) - out.region
+
+
+def test_a_fallback_region_that_must_spread_over_the_object_grows_in_logarithmically_many_rounds(tool):
+    """The tool presses into the upper patch and drags 4 mm: the fallback's rigid region moves with it, every ring
+    around it tears, and the region must spread over the whole patch (about 24 rings). One ring a round took a round
+    each (each round is a check: seconds on a torn step); 2, 4, 8, ... rings a round keep the rounds logarithmic,
+    and the result is clean."""
+    cells = 48
+    rest, F = two_patches(cells=cells)
+    n = len(rest) // 2
+    x1 = rest.copy()
+    x1[40 * (cells + 1) + 40, 2] = 0.009  # a spike of the lower patch through the upper one, far from the tool: a
+    # self pair, so there is no pair-free state to give way to and the fallback is published
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: straight to the fallback
+    h = 0.006 + 0.008  # the sphere resting on the upper patch
+    p0, p1 = pose(0, 0, h + 2e-4), pose(0.004, 0, h - 5e-4)
+    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
+    out = stage.correct(corr, rest, corr.correct(rest, x1, p0, p1, T0, T1).positions, p0, p1, T0, T1)
+    assert out.fallback and out.region >= n  # the whole upper patch turned with the tool
+    assert 3 <= out.fallback_rounds <= GROW_DOUBLING + int(np.ceil(np.log2(cells))) + 1 < cells // 2
+    assert_clean(stage, F, rest, out, tool, T0, T1)
 
 
 def test_rest_touching_itself_is_refused():

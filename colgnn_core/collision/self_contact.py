@@ -38,7 +38,9 @@ Repair, up to ``max_rounds`` rounds, each followed by the tool pass:
 Fallback, when the rounds run out: the previous published state moved only where the tool requires. Surface vertices
 start at x0; the tool's certified fallback (:meth:`CollisionCorrector.rigid_fallback`) moves the region it cannot
 certify rigidly with the tool (R x0 + p). Then, repeatedly, every pair and triangle with vertices both inside and
-outside the region is checked (CCD, validity); the vertices of a failing one join the region, and the tool
+outside the region is checked (CCD, validity); the vertices of a failing one join the region with a ring around
+them (from the ``GROW_DOUBLING``-th round on, 2, 4, 8, ... rings: a torn step can need the region to spread across
+the object, and each round costs a check, so the rounds stay logarithmic in the object's size), and the tool
 certificate is redone. Safety (x0 self-clean and valid):
 
 * a pair with all four vertices outside the region does not move: its distance stays the x0 distance
@@ -63,8 +65,9 @@ proposal; the next proposal is then far from that state, fails again, and the re
 banana's held-out tilted slice: 16 fallbacks in a row, the surface dragged 59 mm, relative error 8.7 against 0.35
 without the stage). So when the fallback would carry its region farther than the quiet distance in this step, and
 one of the round's checked states had no self pair (its only defect an invalid triangle), that state is published
-instead: it went through the tool pass (I3) and the full pair check (I1); its invalid triangles (I2) are counted in
-``invalid_after`` and repaired from the rest in the next steps.
+instead (the region only grows, so the fallback stops as soon as its region moves that far): it went through the
+tool pass (I3) and the full pair check (I1); its invalid triangles (I2) are counted in ``invalid_after`` and repaired
+from the rest in the next steps.
 """
 
 from __future__ import annotations
@@ -96,6 +99,7 @@ FILL_ROUNDS = 2         # rounds in which invalid patches follow their neighbour
 PUSH_ROUNDS = 3         # rounds in which self pairs are pushed apart; later: back to x0
 FILL_ITERATIONS = 30    # Jacobi sweeps of the harmonic fill
 MIN_PUSH_TIME = 0.05    # a push at t+1 is (target - d*) / max(t*, this)
+GROW_DOUBLING = 3       # fallback rounds that grow the region by one ring; later rounds grow by 2, 4, 8, ... rings
 _NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
 
@@ -133,8 +137,10 @@ class SelfResult:
     tool-corrected input; pairs_after / invalid_after: in the output (invalid_after is 0 unless the fallback left a
     rotated triangle flipped, or a pair-free state with invalid triangles was published instead of a carried region,
     module docstring); rounds: repair rounds used; fallback: the self fallback was used; region: its rigid
-    region (vertices); tool_fallback: a tool pass after a repair used the tool's fallback; moved: vertices whose
-    position differs from the input; timings_ms: check, repair, tool, fallback, total.
+    region (vertices); fallback_rounds: rounds of the fallback's region growth (0 when it did not run or stopped
+    at once; logarithmic in the object's size, see ``GROW_DOUBLING``); tool_fallback: a tool pass after a repair
+    used the tool's fallback; moved: vertices whose position differs from the input; timings_ms: check, repair,
+    tool, fallback, total.
     """
 
     positions: np.ndarray
@@ -145,6 +151,7 @@ class SelfResult:
     rounds: int = 0
     fallback: bool = False
     region: int = 0
+    fallback_rounds: int = 0
     tool_fallback: bool = False
     moved: int = 0
     timings_ms: dict = field(default_factory=dict)
@@ -270,11 +277,13 @@ class SelfContact:
             out.tool_fallback |= c.fallback
         if not clean:
             t = time.perf_counter()
-            fb, region = self._fallback(corrector, x0, x, pose0, pose1, T0, T1, clearance)
-            if pair_free is not None and self.carried(x0, fb, region) > self.quiet:
+            fb = self._fallback(corrector, x0, x, pose0, pose1, T0, T1, clearance, give_way=pair_free is not None)
+            if fb is not None:
+                out.fallback_rounds = fb[2]
+            if fb is None or (pair_free is not None and self.carried(x0, fb[0], fb[1]) > self.quiet):
                 x = pair_free[1]  # module docstring: a carried region is the worse harm
             else:
-                x = fb
+                x, region = fb[0], fb[1]
                 out.fallback, out.region = True, int(region.sum())
             out.invalid_after = int(self.validity.invalid(x).sum())
             ms["fallback"] = 1e3 * (time.perf_counter() - t)
@@ -363,16 +372,23 @@ class SelfContact:
         acc = np.stack([np.bincount(inv, weights=disp[:, k], minlength=len(uniq)) for k in range(3)], axis=1)
         return uniq, acc / cnt[:, None]
 
-    def _fallback(self, corrector: CollisionCorrector, x0, x, pose0, pose1, T0, T1, clearance: bool
-                  ) -> tuple[np.ndarray, np.ndarray]:
-        """The self-and-tool fallback (module docstring): (positions [N,3], rigid region bool [N])."""
+    def _fallback(self, corrector: CollisionCorrector, x0, x, pose0, pose1, T0, T1, clearance: bool, *,
+                  give_way: bool = False) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The self-and-tool fallback (module docstring): (positions [N,3], rigid region bool [N], rounds of the
+        region's growth). With
+        ``give_way`` (a pair-free state exists): None as soon as the region would be carried farther than the quiet
+        distance. The region only grows and moves rigidly, so the first region that does so decides, and the
+        remaining rounds, the costly ones, are skipped."""
         S, F = self.S, self.surface.faces
         c = corrector.clearance.clearance if clearance else 0.0
         base = x.copy()
         base[S] = x0[S]  # non-surface graph nodes keep their values: they take no part in contact
         region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c)
         kept = self.validity.invalid(x0)  # invalid before the step: not the region's doing (see _repair_kept)
-        for _ in range(len(S) + 1):  # every round adds a vertex: at most |S| rounds (in practice a few)
+        k = 0
+        for k in range(len(S) + 1):  # every round adds a vertex: at most |S| rounds (in practice a few)
+            if give_way and self.carried(x0, base, region) > self.quiet:
+                return None
             chk = self.check(x0, base, moving=region)
             mixed = chk.invalid & ~kept & ~region[F].all(axis=1)
             grow = np.zeros(self.n, dtype=np.bool_)
@@ -381,10 +397,12 @@ class SelfContact:
                 grow[self.pair_vertices(chk)] = True
             if not (grow & ~region).any():
                 break
-            # One ring more than needed: fewer rounds (each is a check) for the same guarantee.
-            grow = _grow(grow, *self.neighbours)
+            # More rings than needed, and twice as many every round from the GROW_DOUBLING-th on: each round is a
+            # check, and a torn step can need the region to spread across the object. The guarantee is the same
+            # (the loop ends only when no mixed pair or triangle fails); the round count becomes logarithmic.
+            grow = _grow_rings(grow, 1 if k < GROW_DOUBLING else 2 ** min(k - GROW_DOUBLING + 1, 30), *self.neighbours)
             region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c, region=region | grow)
-        return self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, clearance)
+        return *self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, clearance), k
 
     def _repair_kept(self, corrector: CollisionCorrector, x0, base, region, pose0, pose1, T0, T1, clearance: bool
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -442,6 +460,18 @@ def _grow(mask, offsets, nbrs):
         if mask[v]:
             for q in range(offsets[v], offsets[v + 1]):
                 out[nbrs[q]] = True
+    return out
+
+
+@njit(cache=True)
+def _grow_rings(mask, rings, offsets, nbrs):
+    """mask [N] bool plus ``rings`` rings of neighbours (fewer when the mask stops growing)."""
+    out = mask.copy()
+    for _ in range(rings):
+        nxt = _grow(out, offsets, nbrs)
+        if (nxt == out).all():
+            break
+        out = nxt
     return out
 
 
