@@ -375,17 +375,15 @@ class SelfContact:
     def _fallback(self, corrector: CollisionCorrector, x0, x, pose0, pose1, T0, T1, clearance: bool, *,
                   give_way: bool = False) -> tuple[np.ndarray, np.ndarray, int] | None:
         """The self-and-tool fallback (module docstring): (positions [N,3], rigid region bool [N], rounds of the
-        region's growth). With
-        ``give_way`` (a pair-free state exists): None as soon as the region would be carried farther than the quiet
-        distance. The region only grows and moves rigidly, so the first region that does so decides, and the
-        remaining rounds, the costly ones, are skipped."""
+        region's growth). With ``give_way`` (a pair-free state exists): None as soon as the region would be carried
+        farther than the quiet distance. The region only grows and moves rigidly, so the first region that does so
+        decides, and the remaining rounds, the costly ones, are skipped."""
         S, F = self.S, self.surface.faces
         c = corrector.clearance.clearance if clearance else 0.0
         base = x.copy()
         base[S] = x0[S]  # non-surface graph nodes keep their values: they take no part in contact
         region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c)
         kept = self.validity.invalid(x0)  # invalid before the step: not the region's doing (see _repair_kept)
-        k = 0
         for k in range(len(S) + 1):  # every round adds a vertex: at most |S| rounds (in practice a few)
             if give_way and self.carried(x0, base, region) > self.quiet:
                 return None
