@@ -49,7 +49,8 @@ from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import validate_pose
 from colgnn_core.runtime.models import shipped_checkpoint
-from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor, auto_threads, self_contact_default
+from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor, self_contact_default
+from colgnn_core.runtime.threads import auto_threads
 from colgnn_core.scenes import load_scene, scene_names
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS, ParamSpec, declare_parameters, run_node
 from msg_tools.conversions import (COLLISION_COUNT_LABELS, NS_PER_S, counts_to_msg, diagnostic_array, pose_to_array,
@@ -375,6 +376,8 @@ class PredictorNode(Node):
             "rate_hz": float(rate),
         }
         values.update(self.stats)
+        # Steps whose collision kernels ran on one thread because other processes held the cores (ContentionGuard).
+        values["kernel_threads_reduced"] = self.predictor.kernel_guard.reduced_steps
         values["rejected_total"] = sum(self.stats[f"rejected_{r}"] for r in REJECT_REASONS)
         return values
 

@@ -26,6 +26,7 @@ def test_bench_reports_the_contract_fields():
     assert (r["vertices"], r["edges"], r["faces"], r["threads"]) == (
         len(scene.object.vertices), len(scene.object.edges), len(scene.object.faces), 1)
     assert r["crossings_after_correction"] == 0
+    assert r["kernel_threads_reduced_steps"] == 0  # one thread asked for: nothing to reduce
     assert "speedup vs IPC" in format_bench(r)
     json.dumps(r)  # JSON-ready
 

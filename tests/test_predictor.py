@@ -440,10 +440,3 @@ def test_a_static_tool_out_of_reach_of_the_rest_shape_releases_the_object(scene)
     pose[:3] += 1e-4 * np.sign(shift)  # a small move, the object still in reach
     moving.step(pose)
     assert moving.net.world_edges > 0 and moving.relaxed_steps == 0
-
-
-@pytest.mark.parametrize("cores, threads", [(1, 1), (2, 1), (4, 1), (6, 3), (8, 4), (64, 4)])
-def test_auto_threads_keeps_one_thread_on_small_machines(cores, threads):
-    from colgnn_core.runtime.predictor import auto_threads
-
-    assert auto_threads(cores) == threads

@@ -32,8 +32,8 @@ from visualization_msgs.msg import Marker  # noqa: E402
 from colgnn_core.collision.exact import has_intersections  # noqa: E402
 from colgnn_core.errors import InputError  # noqa: E402
 from colgnn_core.io import load_sequence  # noqa: E402
-from colgnn_core.runtime.predictor import (REALTIME_INTERIOR, RECOMMENDED_REST_RELAXATION, Predictor,  # noqa: E402
-                                           auto_threads)
+from colgnn_core.runtime.predictor import REALTIME_INTERIOR, RECOMMENDED_REST_RELAXATION, Predictor  # noqa: E402
+from colgnn_core.runtime.threads import auto_threads  # noqa: E402
 from colgnn_ros.common import OUTPUT_QOS, POSE_QOS  # noqa: E402
 from colgnn_ros.predictor_node import PARAMETERS, REJECT_REASONS, PredictorNode  # noqa: E402
 from msg_tools import (COLLISION_COUNT_LABELS, array_to_pose_stamped, diagnostic_values, msg_to_counts,  # noqa: E402

@@ -41,7 +41,7 @@ from colgnn_core.learn.checkpoint import strip_training_state
 from colgnn_core.learn.data import read_manifest
 from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.learn.train import TrainConfig, train
-from colgnn_core.runtime.predictor import auto_threads
+from colgnn_core.runtime.threads import auto_threads
 from colgnn_core.runtime.rollout import rollout
 from colgnn_core.scenes import RESOLUTIONS, is_custom, load_scene, scene_file
 from colgnn_core.sim.cluster import check_workers

@@ -103,6 +103,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "fallbacks": timed["fallbacks"],
         "out_of_domain_steps": timed["out_of_domain"],
         "threads": int(torch.get_num_threads()),
+        # steps whose collision kernels ran on one thread: other processes held the cores (ContentionGuard)
+        "kernel_threads_reduced_steps": int(predictor.kernel_guard.reduced_steps),
         "compiled": bool(predictor.compiled),
         "vertices": int(len(scene.object.vertices)),
         "surface_vertices": int(len(scene.object.surface_vertices)),
@@ -127,4 +129,7 @@ def format_bench(r: dict) -> str:
                  f"step 1 {e['step_1']:.2e}, step 10 {e['step_10']:.2e}, all {e['all']:.2e}")
     lines.append(f"crossings before/after correction: {r['crossings_before_correction']}/"
                  f"{r['crossings_after_correction']}, fallbacks {r['fallbacks']}")
+    if r.get("kernel_threads_reduced_steps"):
+        lines.append(f"busy machine: the collision kernels ran on 1 thread in {r['kernel_threads_reduced_steps']} "
+                     f"steps (other processes held the cores); these timings are not the free machine's")
     return "\n".join(lines)

@@ -36,7 +36,6 @@ import ctypes
 import ctypes.util
 import math
 from collections.abc import Sequence
-import os
 import time
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -54,6 +53,7 @@ from colgnn_core.learn.core_model import EdgeSet
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.stepper import RawStepper
+from colgnn_core.runtime.threads import ContentionGuard, auto_threads
 from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.hard_cases import press_pose
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
@@ -129,6 +129,7 @@ class StepResult:
     invalid_faces_after: int = 0
     self_fallback: bool = False
     self_moved: int = 0
+    kernel_threads: int = 1    # the collision kernels' threads in this call (fewer than asked while the cores are busy)
     timings_ms: dict = field(default_factory=dict)
 
     @property
@@ -226,18 +227,6 @@ def _rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
     return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(q0, q1))))))
 
 
-def auto_threads(cpu_count: int | None = None) -> int:
-    """The torch thread count for a real-time Predictor on a machine with ``cpu_count`` cores (default: this one).
-
-    Measured on a 2-core machine (docs/SPEED.md): torch's OpenMP pool at 2 threads collapses (0.1-1.3 s per step)
-    as soon as another process holds one of the cores, as the pose publisher and the recorder do next to the
-    node, while 1 thread stays within ~30% of the quiet 2-thread step. So 1 thread up to 4 cores; above that, half
-    the cores, at most 4 (not measured here: a larger machine has headroom for the pool).
-    """
-    n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
-    return 1 if n <= 4 else min(4, n // 2)
-
-
 class Predictor:
     """GNN step + collision-aware correction for one scene (see module docstring).
 
@@ -247,7 +236,9 @@ class Predictor:
         correction: run the collision-aware correction (False: the raw network, still validated/subdivided).
         max_substeps: most model steps one ``step`` call may take for a large jump.
         threads: torch intra-op threads (set process-wide), and the collision kernels' numba threads (set per
-            stepping thread, :func:`~colgnn_core.collision.kernels.use_kernel_threads`).
+            stepping thread, :func:`~colgnn_core.collision.kernels.use_kernel_threads`). The kernels drop to one
+            thread while other processes hold the cores (:class:`~colgnn_core.runtime.threads.ContentionGuard`;
+            ``StepResult.kernel_threads``).
         max_iterations: correction passes before the safe fallback; default the scene's
             ``[correction] max_iterations`` (:func:`correction_iterations`).
         step_limits: (max translation m, max rotation rad) per model step; default from the
@@ -301,7 +292,7 @@ class Predictor:
         self._rest_tree = None  # k-d tree of the rest graph nodes (built on first need)
         self.max_substeps = int(max_substeps)
         self.threads = torch.get_num_threads()
-        use_kernel_threads(self.threads)  # the collision kernels use the same cores as the network
+        self.kernel_guard = ContentionGuard(self.threads)  # the collision kernels use the network's cores if free
         self.max_translation, self.max_rotation = (tool_step_limits(scene, loaded.extra) if step_limits is None
                                                    else (float(step_limits[0]), float(step_limits[1])))
         if not (self.max_translation > 0 and self.max_rotation > 0):
@@ -462,14 +453,15 @@ class Predictor:
     def step(self, tool_pose) -> StepResult:
         """Advance to ``tool_pose`` [7] and return the published state (InputError: state unchanged)."""
         t_start = time.perf_counter()
-        use_kernel_threads(self.threads)  # numba's count is per thread: a ROS executor may step from another
+        # numba's count is per thread (a ROS executor may step from another), so it is set on every step.
+        kernel_threads = use_kernel_threads(self.kernel_guard.threads())
         pose, n = self.check(tool_pose)
         start = self.net.state.pose
         subposes = interpolate_poses(start, pose, np.arange(1, n + 1) / n) if n > 1 else pose[None]
         subposes[-1] = pose
         res = StepResult(positions=self.state.mesh, surface_faces=self.surface_faces,
                          surface_vertex_ids=self.surface_vertex_ids, tool_vertices=None, tool_faces=self.tool_faces,
-                         tool_pose=pose, substeps=n)
+                         tool_pose=pose, substeps=n, kernel_threads=kernel_threads)
         ms = {"graph": 0.0, "gnn": 0.0, "correction": 0.0, "self_contact": 0.0}
         saved = (self.net.state, self.state)
         try:

@@ -1,0 +1,92 @@
+"""Thread counts for stepping: the machine's default (:func:`auto_threads`) and a guard that runs the collision
+kernels on one thread while other processes hold the cores (:class:`ContentionGuard`).
+
+Both come from measurements on a 2-core machine. A parallel region (torch's OpenMP pool, numba's parallel
+kernels) waits at its end for every worker; when another process holds a core, a parked worker runs a scheduler
+time slice later (milliseconds). One region costs microseconds on a free machine, up to ~10 ms beside one busy
+process, and a tool pass runs hundreds of them: random bunny steps beside three busy processes took up to 15 s
+with the kernels on 2 threads, and under 0.3 s with them on 1 (docs/COLLISION_GUARANTEE.md, session 19).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+
+__all__ = ["QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us"]
+
+QUIET_SAMPLES = 50     # uncontended calls in a row before the guard gives the kernels their threads back (2 s at 25 Hz)
+STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
+STALL_SMOOTHING = 0.25  # weight of the latest interval in the smoothed fraction (a busy neighbour trips it in 2 calls)
+
+
+def auto_threads(cpu_count: int | None = None) -> int:
+    """The torch thread count for a real-time Predictor on a machine with ``cpu_count`` cores (default: this one).
+
+    Measured on a 2-core machine (docs/SPEED.md): torch's OpenMP pool at 2 threads collapses (0.1-1.3 s per step)
+    as soon as another process holds one of the cores, as the pose publisher and the recorder do next to the
+    node, while 1 thread stays within ~30% of the quiet 2-thread step. So 1 thread up to 4 cores; above that, half
+    the cores, at most 4 (not measured here: a larger machine has headroom for the pool).
+    """
+    n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
+    return 1 if n <= 4 else min(4, n // 2)
+
+
+def cpu_stall_us(path: str = "/proc/pressure/cpu") -> int | None:
+    """Microseconds, since boot, in which some runnable task on the machine waited for a CPU: the ``total`` of the
+    ``some`` line of Linux's pressure stall information (PSI; kernel 4.20 on, ~8 us to read). None where it
+    cannot be read (not Linux, or a kernel without PSI)."""
+    try:
+        with open(path, "rb") as f:
+            return int(f.readline().split()[4].split(b"=")[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+class ContentionGuard:
+    """The thread count for the collision kernels of the next step: ``requested``, or 1 while other work keeps the
+    machine's cores busy.
+
+    Each call reads the machine's CPU stall time (:func:`cpu_stall_us`) and takes the fraction of the time since
+    the last call in which some task waited for a CPU. Measured on the 2-core machine over Predictor steps at 2
+    threads: 0.000 median (p90 0.002, single steps up to 0.19) when nothing else runs, 0.50 beside one busy
+    process, 0.97 beside a 2-thread solver. So the fraction is smoothed (``STALL_SMOOTHING``) and a smoothed
+    fraction above ``STALL_FRACTION`` is contended. The guard drops to 1 thread at the first contended
+    call and gives the threads back after ``quiet`` uncontended calls in a row: one thread costs at most the
+    parallel speed-up (about 10% of a step), while a parallel region beside a busy process can cost milliseconds,
+    hundreds of times a step. Results do not depend on the count (the kernels write disjoint rows in the serial
+    order).
+
+    Args:
+        requested: the thread count asked for (>= 1); with 1 the guard never reads the clock.
+        stall: the machine's stall time so far (us), or None if unknown (then the guard trusts the request).
+        clock: seconds, monotonic.
+        quiet: uncontended calls in a row before ``requested`` threads are used again.
+    """
+
+    def __init__(self, requested: int, stall: Callable[[], int | None] = cpu_stall_us,
+                 clock: Callable[[], float] = time.perf_counter, quiet: int = QUIET_SAMPLES):
+        if requested < 1:
+            raise ValueError(f"requested threads must be >= 1, got {requested}")
+        self.requested = int(requested)
+        self.stall, self.clock, self.quiet = stall, clock, int(quiet)
+        self.calm = self.quiet  # uncontended calls in a row: the request is trusted from the start
+        self.reduced_steps = 0  # calls that answered fewer threads than requested
+        self.level = 0.0  # the smoothed stall fraction
+        self._last: tuple[int, float] | None = None  # (stall us, clock s) at the last call
+
+    def threads(self) -> int:
+        """Read the machine's stall time and return the kernels' thread count for the next step."""
+        if self.requested == 1:
+            return 1
+        now = (self.stall(), self.clock())
+        last, self._last = self._last, now if now[0] is not None else None
+        if last is not None and now[0] is not None and now[1] > last[1]:
+            fraction = (now[0] - last[0]) * 1e-6 / (now[1] - last[1])
+            self.level += STALL_SMOOTHING * (fraction - self.level)
+        self.calm = 0 if self.level > STALL_FRACTION else self.calm + 1
+        if self.calm >= self.quiet:
+            return self.requested
+        self.reduced_steps += 1
+        return 1

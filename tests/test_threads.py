@@ -1,0 +1,135 @@
+"""Thread counts for stepping: auto_threads, and the guard that puts the collision kernels on one thread while other
+processes hold the cores (the real machine's stall counter included)."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+
+import numba
+import numpy as np
+import pytest
+
+from colgnn_core.runtime.threads import (QUIET_SAMPLES, STALL_FRACTION, ContentionGuard, auto_threads,
+                                         cpu_stall_us)
+from tests.helpers import train_data as fx
+from tests.helpers.correction_cases import make_model
+
+
+class FakeMachine:
+    """A stall counter and a clock: each call to ``tick`` advances 40 ms (a 25 Hz step) with ``busy`` of it stalled."""
+
+    def __init__(self):
+        self.t, self.stalled_us, self.busy = 0.0, 0, 0.0
+
+    def tick(self, busy: float) -> None:
+        self.t += 0.04
+        self.stalled_us += int(busy * 0.04e6)
+
+    def guard(self, requested: int = 2, **kw) -> ContentionGuard:
+        return ContentionGuard(requested, stall=lambda: self.stalled_us, clock=lambda: self.t, **kw)
+
+
+def _run(machine: FakeMachine, guard: ContentionGuard, busy: list[float]) -> list[int]:
+    out = []
+    for b in busy:
+        machine.tick(b)
+        out.append(guard.threads())
+    return out
+
+
+@pytest.mark.parametrize("cores, threads", [(1, 1), (2, 1), (4, 1), (6, 3), (8, 4), (64, 4)])
+def test_auto_threads_keeps_one_thread_on_small_machines(cores, threads):
+    assert auto_threads(cores) == threads
+
+
+def test_guard_keeps_the_threads_on_a_free_machine_despite_single_busy_intervals():
+    m = FakeMachine()
+    g = m.guard(2)
+    # The free 2-core machine's measured pattern: mostly 0, single intervals up to 0.19 stalled.
+    busy = [0.0] * 30 + [0.19] + [0.0] * 10 + [0.13, 0.0, 0.0, 0.19] + [0.0] * 20
+    assert _run(m, g, busy) == [2] * len(busy)
+    assert g.reduced_steps == 0
+
+
+def test_guard_drops_to_one_thread_beside_a_busy_process_and_gives_the_threads_back_after_quiet_steps():
+    m = FakeMachine()
+    g = m.guard(2)
+    assert _run(m, g, [0.0] * 5) == [2] * 5
+    beside = _run(m, g, [0.5] * 20)  # one busy process on 2 cores: half the time some task waits
+    assert beside[:1] == [2] and beside[2:] == [1] * 18  # smoothed: it trips on the second busy interval
+    after = _run(m, g, [0.0] * (QUIET_SAMPLES + 20))
+    first_back = after.index(2)
+    # The smoothed level decays below STALL_FRACTION within a few steps, then QUIET_SAMPLES calm calls follow.
+    assert QUIET_SAMPLES <= first_back <= QUIET_SAMPLES + 8 and set(after[first_back:]) == {2}
+    assert g.reduced_steps == beside.count(1) + first_back
+
+
+def test_guard_trusts_the_request_without_a_stall_counter_and_never_reads_it_for_one_thread():
+    g = ContentionGuard(4, stall=lambda: None)
+    assert [g.threads() for _ in range(5)] == [4] * 5
+
+    def unreadable():
+        raise AssertionError("read although one thread was requested")
+
+    assert ContentionGuard(1, stall=unreadable).threads() == 1
+    with pytest.raises(ValueError, match="requested threads"):
+        ContentionGuard(0)
+    assert 0 < STALL_FRACTION < 0.5  # below a single busy neighbour's 0.5 on 2 cores
+
+
+def test_cpu_stall_us_reads_the_machine_or_says_it_cannot(tmp_path):
+    a = cpu_stall_us()
+    if a is not None:
+        time.sleep(0.01)
+        assert isinstance(a, int) and 0 <= a <= cpu_stall_us()
+    bad = tmp_path / "cpu"
+    bad.write_text("garbage\n")
+    assert cpu_stall_us(str(bad)) is None and cpu_stall_us(str(tmp_path / "missing")) is None
+    good = tmp_path / "psi"
+    good.write_text("some avg10=0.00 avg60=0.00 avg300=0.00 total=12345\nfull avg10=0.00 avg60=0.00 avg300=0.00 "
+                    "total=0\n")
+    assert cpu_stall_us(str(good)) == 12345
+
+
+def _spin(seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+@pytest.mark.skipif(cpu_stall_us() is None, reason="this kernel has no CPU pressure stall information")
+def test_guard_sees_real_busy_processes_on_every_core():
+    # As many busy processes as cores: whatever else runs, some task waits for a CPU most of the time.
+    ctx = multiprocessing.get_context("spawn")
+    procs = [ctx.Process(target=_spin, args=(2.0,)) for _ in range(os.cpu_count() or 1)]
+    for p in procs:
+        p.start()
+    try:
+        time.sleep(0.5)  # the spawned interpreters start
+        g = ContentionGuard(2)
+        answers = []
+        for _ in range(10):
+            time.sleep(0.04)
+            answers.append(g.threads())
+    finally:
+        for p in procs:
+            p.join()
+    assert answers[-5:] == [1] * 5 and g.level > STALL_FRACTION
+
+
+def test_predictor_steps_its_kernels_on_the_guards_count():
+    scene = fx.scene()
+    m = FakeMachine()
+    from colgnn_core.runtime.predictor import Predictor
+
+    p = Predictor(make_model(scene, "noisy"), scene, threads=1)
+    p.kernel_guard = m.guard(2)  # as a Predictor asked for 2 threads has it, on a fake busy machine
+    pose = np.asarray(scene.tool_rest_pose, dtype=np.float64)
+    counts = []
+    for busy in (0.0, 0.0, 0.9, 0.9, 0.9):
+        m.tick(busy)
+        counts.append(p.step(pose).kernel_threads)
+        assert numba.get_num_threads() == counts[-1]
+    assert counts == [2, 2, 1, 1, 1]  # 0.9 of an interval stalled trips the smoothed level at once
