@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import os
 import subprocess
 import sys
 import tomllib
@@ -84,6 +85,16 @@ def test_bad_mesh_on_the_command_line_exits_2_and_writes_nothing(tmp_path):
     assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
     assert not list(out.glob("*")) if out.exists() else True
 
+
+
+def test_tetrahedralizing_leaves_nothing_in_the_working_folder(tmp_path, monkeypatch):
+    from colgnn_core.geometry.tetrahedralize import tetrahedralize_surface
+
+    monkeypatch.chdir(tmp_path)
+    mesh = tetrahedralize_surface(CUBE_V, CUBE_F, edge_length_fac=0.5, epsilon=1e-2)
+    # fTetWild writes __tracked_surface.stl into the working folder: it goes to a scratch folder instead.
+    assert list(tmp_path.iterdir()) == [] and os.getcwd() == str(tmp_path)
+    assert len(mesh.tets) >= 5 and np.isclose(mesh.volumes().sum(), 1.0, rtol=1e-2)
 
 def test_tool_and_material_arguments():
     assert parse_tool("sphere").overrides == {}

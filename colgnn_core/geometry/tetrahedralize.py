@@ -20,9 +20,14 @@ built the committed ``.npz`` assets (the bunnies) offline. Regenerate those with
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.machinery
 import importlib.util
+import os
 import sys
+import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +48,25 @@ def _wrapper():
     return module
 
 
+_CWD_LOCK = threading.Lock()  # the working folder is the process's: one tetrahedralization at a time changes it
+
+
+@contextlib.contextmanager
+def _scratch_folder() -> Iterator[None]:
+    """Run the block in a fresh temporary working folder, then return to the caller's and delete it.
+
+    fTetWild writes its scratch file ``__tracked_surface.stl`` (about 1 MB) into the working folder on every call;
+    without this, ``colgnn scene new`` would leave it in the user's folder (or overwrite a file of that name).
+    """
+    with _CWD_LOCK, tempfile.TemporaryDirectory(prefix="colgnn-ftetwild-") as scratch:
+        home = os.getcwd()
+        os.chdir(scratch)
+        try:
+            yield
+        finally:
+            os.chdir(home)
+
+
 def tetrahedralize_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -54,27 +78,28 @@ def tetrahedralize_surface(
     """Tet mesh of the solid bounded by a closed surface (fTetWild; surface is remeshed within ``epsilon``*bbox)."""
     w = _wrapper()
     empty_v, empty_t, empty_val = np.zeros((0, 3)), np.zeros((0, 4), np.int32), np.zeros(0)
-    v, t = w.tetrahedralize_mesh(
-        # writable copies: the binding refuses read-only arrays
-        np.array(vertices, dtype=np.float64, order="C", copy=True),
-        np.array(faces, dtype=np.uint32, order="C", copy=True),
-        True,  # optimize
-        False,  # skip_simplify
-        float(edge_length_fac),
-        0.0,  # edge_length_abs (0 = use the factor)
-        float(epsilon),
-        10.0,  # stop_energy
-        bool(coarsen),  # coarsen the interior while keeping quality
-        int(num_threads),
-        80,  # num_opt_iter
-        6,  # loglevel
-        True,  # quiet
-        False,  # vtk_ordering
-        False,  # disable_filtering
-        empty_v,
-        empty_t,
-        empty_val,
-    )
+    with _scratch_folder():
+        v, t = w.tetrahedralize_mesh(
+            # writable copies: the binding refuses read-only arrays
+            np.array(vertices, dtype=np.float64, order="C", copy=True),
+            np.array(faces, dtype=np.uint32, order="C", copy=True),
+            True,  # optimize
+            False,  # skip_simplify
+            float(edge_length_fac),
+            0.0,  # edge_length_abs (0 = use the factor)
+            float(epsilon),
+            10.0,  # stop_energy
+            bool(coarsen),  # coarsen the interior while keeping quality
+            int(num_threads),
+            80,  # num_opt_iter
+            6,  # loglevel
+            True,  # quiet
+            False,  # vtk_ordering
+            False,  # disable_filtering
+            empty_v,
+            empty_t,
+            empty_val,
+        )
     t = np.asarray(t, dtype=np.int64)
     used, t = np.unique(t, return_inverse=True)
     mesh = TetMesh.from_tets(np.asarray(v, dtype=np.float64)[used], t.reshape(-1, 4), orient=True)
