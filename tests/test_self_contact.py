@@ -261,6 +261,31 @@ def test_a_fallback_region_that_must_spread_over_the_object_grows_in_logarithmic
     assert_clean(stage, F, rest, out, tool, T0, T1)
 
 
+
+def test_the_repair_rounds_stop_at_a_fixed_point_with_the_outcome_of_running_them_all(tool, monkeypatch):
+    """The sphere presses the upper patch 8.5 mm down through the lower one while moving 2 mm: from round 4 on the
+    rounds return the state they start from. They stop there; the outcome is bit for bit that of all rounds."""
+    import colgnn_core.collision.self_contact as self_contact
+
+    rest, F = two_patches()
+    h = 0.006 + 0.008 + 3e-4  # the sphere just above the upper patch
+    p0, p1 = pose(0, 0, h), pose(0.002, 0, h - 0.0085)
+    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
+
+    def run():
+        corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+        stage = SelfContact(F, len(rest), rest)
+        return stage, stage.correct(corr, rest, corr.correct(rest, rest, p0, p1, T0, T1).positions, p0, p1, T0, T1)
+
+    stage, out = run()
+    monkeypatch.setattr(self_contact, "STATELESS_ROUND", 10**6)  # every round runs
+    _, full = run()
+    assert out.pairs_before > 0 and out.rounds < full.rounds == stage.max_rounds
+    np.testing.assert_array_equal(out.positions, full.positions)
+    assert (out.fallback, out.region, out.pairs_after, out.invalid_after, out.tool_fallback) == \
+        (full.fallback, full.region, full.pairs_after, full.invalid_after, full.tool_fallback)
+    assert_clean(stage, F, rest, out, tool, T0, T1)
+
 def test_rest_touching_itself_is_refused():
     rest, F = two_patches(gap=1e-7)
     with pytest.raises(InputError, match="touches itself"):

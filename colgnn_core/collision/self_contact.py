@@ -35,6 +35,11 @@ Repair, up to ``max_rounds`` rounds, each followed by the tool pass:
    pass's pushes, both primitives movable); from round ``PUSH_ROUNDS`` on the pair's vertices and a ring
    return to x0 instead (a pair whose vertices all stay put keeps its x0 distance).
 
+From round ``max(FILL_ROUNDS, PUSH_ROUNDS)`` on, a round is a function of its starting state alone (the check, the
+return to x0 and the tool pass are deterministic). So when such a round ends where it started, every later round
+would repeat it: the rounds stop there, with the outcome that running them all would give. On the bunny's family
+trajectories the tool pass left such a fixed point on eight steps in a row, one round before the last.
+
 Fallback, when the rounds run out: the previous published state moved only where the tool requires. Surface vertices
 start at x0; the tool's certified fallback (:meth:`CollisionCorrector.rigid_fallback`) moves the region it cannot
 certify rigidly with the tool (R x0 + p). Then, repeatedly, every pair and triangle with vertices both inside and
@@ -99,6 +104,7 @@ FILL_ROUNDS = 2         # rounds in which invalid patches follow their neighbour
 PUSH_ROUNDS = 3         # rounds in which self pairs are pushed apart; later: back to x0
 FILL_ITERATIONS = 30    # Jacobi sweeps of the harmonic fill
 MIN_PUSH_TIME = 0.05    # a push at t+1 is (target - d*) / max(t*, this)
+STATELESS_ROUND = max(FILL_ROUNDS, PUSH_ROUNDS)  # from this round on a round depends on its starting state alone
 GROW_DOUBLING = 3       # fallback rounds that grow the region by one ring; later rounds grow by 2, 4, 8, ... rings
 _NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
@@ -253,7 +259,11 @@ class SelfContact:
         out = SelfResult(positions=x)
         clean = False
         pair_free: tuple[int, np.ndarray] | None = None  # (invalid triangles, state): the best pair-free state
+        start = x  # the state the last round started from
         for r in range(self.max_rounds + 1):
+            if r > STATELESS_ROUND and np.array_equal(x, start):
+                break  # a fixed point (module docstring): the remaining rounds would repeat this one
+            start = x
             t = time.perf_counter()
             chk = self.check(x0, x)
             ms["check"] += 1e3 * (time.perf_counter() - t)
