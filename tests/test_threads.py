@@ -11,8 +11,8 @@ import numba
 import numpy as np
 import pytest
 
-from colgnn_core.runtime.threads import (QUIET_SAMPLES, STALL_FRACTION, ContentionGuard, auto_threads,
-                                         cpu_stall_us)
+from colgnn_core.runtime.threads import (MAX_INTERVAL_S, QUIET_SAMPLES, STALL_FRACTION, ContentionGuard,
+                                         auto_threads, cpu_stall_us)
 from tests.helpers import train_data as fx
 from tests.helpers.correction_cases import make_model
 
@@ -65,6 +65,17 @@ def test_guard_drops_to_one_thread_beside_a_busy_process_and_gives_the_threads_b
     assert QUIET_SAMPLES <= first_back <= QUIET_SAMPLES + 8 and set(after[first_back:]) == {2}
     assert g.reduced_steps == beside.count(1) + first_back
 
+
+
+def test_a_long_pause_between_steps_does_not_count_as_contention():
+    # colgnn bench: the IPC solver's threads keep the cores busy for seconds between the Predictor's steps.
+    m = FakeMachine()
+    g = m.guard(2)
+    assert _run(m, g, [0.0, 0.0]) == [2, 2]
+    m.t += 2 * MAX_INTERVAL_S
+    m.stalled_us += int(0.9 * 2 * MAX_INTERVAL_S * 1e6)
+    assert g.threads() == 2 and g.level == 0.0
+    assert _run(m, g, [0.0] * 3) == [2] * 3 and g.reduced_steps == 0
 
 def test_guard_trusts_the_request_without_a_stall_counter_and_never_reads_it_for_one_thread():
     g = ContentionGuard(4, stall=lambda: None)

@@ -14,11 +14,12 @@ import os
 import time
 from collections.abc import Callable
 
-__all__ = ["QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us"]
+__all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us"]
 
-QUIET_SAMPLES = 50     # uncontended calls in a row before the guard gives the kernels their threads back (2 s at 25 Hz)
+QUIET_SAMPLES = 10     # uncontended calls in a row before the guard gives the kernels their threads back (0.4 s at 25 Hz)
 STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
 STALL_SMOOTHING = 0.25  # weight of the latest interval in the smoothed fraction (a busy neighbour trips it in 2 calls)
+MAX_INTERVAL_S = 1.0   # a longer interval between calls says little about now (an idle node, a solver run between)
 
 
 def auto_threads(cpu_count: int | None = None) -> int:
@@ -51,12 +52,14 @@ class ContentionGuard:
     Each call reads the machine's CPU stall time (:func:`cpu_stall_us`) and takes the fraction of the time since
     the last call in which some task waited for a CPU. Measured on the 2-core machine over Predictor steps at 2
     threads: 0.000 median (p90 0.002, single steps up to 0.19) when nothing else runs, 0.50 beside one busy
-    process, 0.97 beside a 2-thread solver. So the fraction is smoothed (``STALL_SMOOTHING``) and a smoothed
-    fraction above ``STALL_FRACTION`` is contended. The guard drops to 1 thread at the first contended
-    call and gives the threads back after ``quiet`` uncontended calls in a row: one thread costs at most the
-    parallel speed-up (about 10% of a step), while a parallel region beside a busy process can cost milliseconds,
-    hundreds of times a step. Results do not depend on the count (the kernels write disjoint rows in the serial
-    order).
+    process, 0.97 beside a 2-thread solver. So the fraction is smoothed (``STALL_SMOOTHING``), and a smoothed
+    fraction above ``STALL_FRACTION`` is contended. An interval longer than ``MAX_INTERVAL_S`` is not counted:
+    in ``colgnn bench`` the IPC solver's threads ran in the 2 s before the Predictor's second step.
+
+    The guard drops to 1 thread at the first contended call, and gives the threads back after ``quiet``
+    uncontended calls in a row. One thread costs at most the parallel speed-up (about 10% of a step), while a
+    parallel region beside a busy process can cost milliseconds, hundreds of times a step. Results do not depend
+    on the count (the kernels write disjoint rows in the serial order).
 
     Args:
         requested: the thread count asked for (>= 1); with 1 the guard never reads the clock.
@@ -82,7 +85,7 @@ class ContentionGuard:
             return 1
         now = (self.stall(), self.clock())
         last, self._last = self._last, now if now[0] is not None else None
-        if last is not None and now[0] is not None and now[1] > last[1]:
+        if last is not None and now[0] is not None and 0 < now[1] - last[1] <= MAX_INTERVAL_S:
             fraction = (now[0] - last[0]) * 1e-6 / (now[1] - last[1])
             self.level += STALL_SMOOTHING * (fraction - self.level)
         self.calm = 0 if self.level > STALL_FRACTION else self.calm + 1
