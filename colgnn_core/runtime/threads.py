@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 __all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us"]
 
-QUIET_SAMPLES = 10     # uncontended calls in a row before the guard gives the kernels their threads back (0.4 s at 25 Hz)
+QUIET_SAMPLES = 10     # uncontended calls in a row before the kernels get their threads back (0.4 s at 25 Hz)
 STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
 STALL_SMOOTHING = 0.25  # weight of the latest interval in the smoothed fraction (a busy neighbour trips it in 2 calls)
 MAX_INTERVAL_S = 1.0   # a longer interval between calls says little about now (an idle node, a solver run between)
