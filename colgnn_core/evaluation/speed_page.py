@@ -29,6 +29,18 @@ def speed_row(r: dict) -> str:
             f"{r['load_average_1min']:.1f} |")
 
 
+def busy_note(results: list[dict]) -> str:
+    """A sentence naming the scenes whose collision kernels ran on 1 thread in some steps because other processes
+    held the cores (``kernel_threads_reduced_steps``; :class:`~colgnn_core.runtime.threads.ContentionGuard`), or
+    "" when none did."""
+    busy = [f"`{r['scene']}` {r['kernel_threads_reduced_steps']} of {r['frames'] - 1} steps" for r in results
+            if r.get("kernel_threads_reduced_steps")]
+    if not busy:
+        return ""
+    return (f"Other processes held the cores during the run: the collision kernels ran on 1 thread in "
+            f"{', '.join(busy)}, so those times are not a free machine's.")
+
+
 def speed_markdown(results: list[dict], command: str, load: float | None = None) -> str:
     """The SPEED.md page for ``results`` (one :func:`bench` dict per scene, measured by ``command``)."""
     if not results:
@@ -41,6 +53,7 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
               "stage, median (p95) | IPC solver (median) | speedup | crossings before → after correction | relative "
               "displacement error | load |")
     table = "\n".join([header, "|---|---|---:|---|---:|---:|---:|---|---:|---:|", *(speed_row(r) for r in results)])
+    busy = f" {busy_note(results)}" if busy_note(results) else ""
     return (f"# Speed\n\n{provenance_line(command, load)}\n\n"
             f"`colgnn bench`: the Predictor (GNN step + collision-aware correction) and the project's IPC solver on "
             f"the same poses, one after the other in the same run, {settings}. Raw results: [bench/](bench). This page "
@@ -48,7 +61,7 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
             f"The load column is the 1-minute load average after each scene (above the core count the machine was "
             f"shared, and the times are inflated). The relative displacement error is ‖X − X_gt‖ / ‖X_gt − X_rest‖ "
             f"over the run (1.0: no better than \"nothing moves\"; [FIDELITY.md](FIDELITY.md)). "
-            f"The paper: {PAPER_MS}.\n")
+            f"The paper: {PAPER_MS}.{busy}\n")
 
 
 def write_speed_page(results: list[dict], page: Path, command: str) -> Path:
