@@ -62,11 +62,15 @@ def test_surface_validity_is_checked_every_10th_frame_and_catches_a_fold(result)
     frames = fx.FRAMES
     expected = len(set(range(0, frames, SURFACE_CHECK_EVERY)) | {frames - 1}) * len(result["sequences"])
     gt = result["rows"]["ground_truth"]["surface"]
-    assert gt == {"checked_frames": expected, "self_intersecting_frames": 0, "invalid_face_frames": 0}
+    every = frames * len(result["sequences"])
+    assert gt == {"checked_frames": expected, "self_intersecting_frames": 0, "invalid_face_frames": 0,
+                  "frames": every, "invalid_face_frames_all": 0}
     for mode in ("raw", "corrected"):
-        assert result["rows"][mode]["surface"]["checked_frames"] == expected
+        s = result["rows"][mode]["surface"]
+        assert s["checked_frames"] == expected and s["frames"] == every
+        assert s["invalid_face_frames"] <= s["invalid_face_frames_all"] <= every
     md = (fx.tmp_dir("evaluate") / "metrics.md").read_text()
-    assert f"| ground truth | 0/{expected} | 0/{expected} |" in md and "| ratio |" in md
+    assert f"| ground truth | 0/{expected} | 0/{expected} | 0/{every} |" in md and "| ratio |" in md
     # a fold: one surface vertex pushed through the object to the far side flips its faces and crosses the surface
     seq = load_sequence(sorted(fx.dataset_dir().glob("test_*.npz"))[0])
     x = seq.object_positions[:11].copy()
@@ -74,8 +78,10 @@ def test_surface_validity_is_checked_every_10th_frame_and_catches_a_fold(result)
     v = int(faces[0, 0])
     centre = x[0].mean(0)
     x[10, v] = centre + 1.5 * (centre - x[0, v])
+    x[3, v] = x[10, v]  # the same fold at frame 3, between two checked frames: only the every-frame test sees it
     checks = surface_checks(x, faces, SurfaceValidity(faces, x[0]))
-    assert checks == {"checked_frames": 2, "self_intersecting_frames": 1, "invalid_face_frames": 1}
+    assert checks == {"checked_frames": 2, "self_intersecting_frames": 1, "invalid_face_frames": 1, "frames": 11,
+                      "invalid_face_frames_all": 2}
 
 
 def test_rmse_matches_a_hand_computation(result):

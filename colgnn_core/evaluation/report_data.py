@@ -175,6 +175,8 @@ class SurfaceCounts(Record):
     checked_frames: int
     self_intersecting_frames: int
     invalid_face_frames: int
+    frames: int = 0                   # every frame, for the validity test alone (0: a report from before it)
+    invalid_face_frames_all: int = 0
 
 
 @dataclass
