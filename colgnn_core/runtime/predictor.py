@@ -453,9 +453,9 @@ class Predictor:
     def step(self, tool_pose) -> StepResult:
         """Advance to ``tool_pose`` [7] and return the published state (InputError: state unchanged)."""
         t_start = time.perf_counter()
+        pose, n = self.check(tool_pose)
         # numba's count is per thread (a ROS executor may step from another), so it is set on every step.
         kernel_threads = use_kernel_threads(self.kernel_guard.threads())
-        pose, n = self.check(tool_pose)
         start = self.net.state.pose
         subposes = interpolate_poses(start, pose, np.arange(1, n + 1) / n) if n > 1 else pose[None]
         subposes[-1] = pose
