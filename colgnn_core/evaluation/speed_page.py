@@ -53,7 +53,8 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
               "stage, median (p95) | IPC solver (median) | speedup | crossings before → after correction | relative "
               "displacement error | load |")
     table = "\n".join([header, "|---|---|---:|---|---:|---:|---:|---|---:|---:|", *(speed_row(r) for r in results)])
-    busy = f" {busy_note(results)}" if busy_note(results) else ""
+    note = busy_note(results)
+    busy = f" {note}" if note else ""
     return (f"# Speed\n\n{provenance_line(command, load)}\n\n"
             f"`colgnn bench`: the Predictor (GNN step + collision-aware correction) and the project's IPC solver on "
             f"the same poses, one after the other in the same run, {settings}. Raw results: [bench/](bench). This page "
