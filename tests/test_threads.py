@@ -3,8 +3,9 @@ processes hold the cores (the real machine's stall counter included)."""
 
 from __future__ import annotations
 
-import multiprocessing
 import os
+import subprocess
+import sys
 import time
 
 import numba
@@ -104,21 +105,24 @@ def test_cpu_stall_us_reads_the_machine_or_says_it_cannot(tmp_path):
     assert cpu_stall_us(str(good)) == 12345
 
 
-def _spin(seconds: float) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        pass
+def _cpu_ticks(pid: int) -> int:
+    """User + system clock ticks a process has run (``/proc/PID/stat`` fields 14 and 15)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return int(fields[11]) + int(fields[12])
 
 
 @pytest.mark.skipif(cpu_stall_us() is None, reason="this kernel has no CPU pressure stall information")
 def test_guard_sees_real_busy_processes_on_every_core():
-    # As many busy processes as cores: whatever else runs, some task waits for a CPU most of the time.
-    ctx = multiprocessing.get_context("spawn")
-    procs = [ctx.Process(target=_spin, args=(2.0,)) for _ in range(os.cpu_count() or 1)]
-    for p in procs:
-        p.start()
+    # Twice as many busy processes as cores: whatever else runs, some task waits for a CPU nearly all the time.
+    # Bare interpreters, not multiprocessing's spawn: a spawned child imports this module (and torch with it), which
+    # on a loaded CI machine outlasted the sampling below, so the guard sampled a calm machine.
+    spin = "import time\nend = time.monotonic() + 20\nwhile time.monotonic() < end: pass\n"
+    procs = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2 * (os.cpu_count() or 1))]
     try:
-        time.sleep(0.5)  # the spawned interpreters start
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and not all(_cpu_ticks(p.pid) > 10 for p in procs):
+            time.sleep(0.05)  # each has spun for a tenth of a second: all of them are past start-up
         g = ContentionGuard(2)
         answers = []
         for _ in range(10):
@@ -126,7 +130,8 @@ def test_guard_sees_real_busy_processes_on_every_core():
             answers.append(g.threads())
     finally:
         for p in procs:
-            p.join()
+            p.kill()
+            p.wait()
     assert answers[-5:] == [1] * 5 and g.level > STALL_FRACTION
 
 
