@@ -37,6 +37,7 @@ from colgnn_core.scenes import SCENE_PATH_ENV, load_scene, scene_dirs, scene_nam
 from colgnn_core.scenes.custom import MATERIALS, create_scene, format_summary
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 from colgnn_core.sim.dataset import generate_dataset, parse_shard, simulate_sequence
+from colgnn_core.sim.partial import PARTIAL_EVERY_S
 from colgnn_core.sim.settle import MAX_SAG_FRACTION, check_settle
 
 Handler = Callable[[argparse.Namespace], int]
@@ -88,6 +89,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         retry_failed=args.retry_failed,
         dask=args.dask,
+        partial_every_s=args.save_every,
     )
     done = manifest.get("sequences", {})
     print(f"{len(done)} sequence(s) in {args.out} (manifest.json)")
@@ -288,6 +290,9 @@ def _add_generate(sub) -> None:
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N", help="simulate only shard I of N")
     p.add_argument("--resolution", choices=("ci", "full"), default="full")
     p.add_argument("--poses", default=None, help="simulate this poses CSV instead of the scene's family")
+    p.add_argument("--save-every", type=float, default=PARTIAL_EVERY_S, metavar="SECONDS",
+                   help="save each sequence in progress to FILE.partial this often; an interrupted run continues "
+                        f"from it (default {PARTIAL_EVERY_S:g})")
     p.add_argument("--retry-failed", action="store_true",
                    help="simulate again sequences whose every seed failed in an earlier run (default: skip them)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

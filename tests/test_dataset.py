@@ -188,3 +188,74 @@ def test_a_failed_job_is_remembered_and_not_simulated_again(tmp_path):
     generate_dataset(SCENE, "ci", tmp_path, sequences=1, frames=3, split="train", progress=False)
     manifest = json.loads((tmp_path / "manifest.json").read_text())
     assert "failed" not in manifest and "train_0000.npz" in manifest["sequences"]
+
+
+def _partial_done(path: Path) -> int:
+    """The last frame saved in a partial file; -1 while it is absent or being replaced."""
+    try:
+        with np.load(path) as z:
+            return int(z["done"])
+    except (OSError, ValueError, KeyError, EOFError):
+        return -1
+
+
+def test_an_interrupted_generate_continues_from_its_partial_file(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from colgnn_core.io import write_poses_csv
+    from colgnn_core.sim.partial import partial_path
+
+    scene = load_scene(SCENE, "ci")
+    poses = sample_poses(scene, 4, 24)
+    csv = tmp_path / "poses.csv"
+    write_poses_csv(csv, np.arange(len(poses)) * scene.dt, poses)
+    out = tmp_path / "out"
+    partial = partial_path(out / "custom_0000.npz")
+    # A real process, killed without warning once it has saved a few frames (as a session's end kills a solver).
+    proc = subprocess.Popen([sys.executable, "-m", "colgnn_core", "generate", "--scene", SCENE, "--resolution", "ci",
+                             "--poses", str(csv), "--out", str(out), "--save-every", "0", "--quiet"])
+    try:
+        deadline = time.monotonic() + 120
+        while _partial_done(partial) < 3 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    saved = _partial_done(partial)
+    assert 3 <= saved < len(poses) - 1 and not (out / "custom_0000.npz").exists()
+    with np.load(partial) as z:
+        saved_ms = z["step_ms"].copy()
+
+    m = generate_dataset(SCENE, "ci", out, poses=poses, progress=False)
+    seq = load_sequence(out / "custom_0000.npz")
+    assert not partial.exists() and m["sequences"]["custom_0000.npz"]["frames"] == len(poses)
+    # Frames up to the saved one were taken from the file, not solved again (their solve times are the saved ones).
+    assert np.array_equal(seq.extra["step_ms"][: saved + 1], saved_ms)
+    assert np.all(seq.extra["step_ms"][saved + 1:] > 0)
+    whole = simulate_sequence(scene, poses)
+    assert np.array_equal(seq.object_positions[: saved + 1], whole.object_positions[: saved + 1])
+    # After the restart: the same trajectory to the linear solver's tolerance (far below the 1e-3 m contact scale).
+    assert np.abs(seq.object_positions - whole.object_positions).max() < 1e-6
+    assert np.allclose(seq.tool_positions, whole.tool_positions)
+
+
+def test_a_partial_file_of_other_poses_is_not_continued(tmp_path):
+    from colgnn_core.sim.partial import partial_path
+
+    scene = load_scene(SCENE, "ci")
+    partial = partial_path(tmp_path / "seq.npz")
+    a, b = sample_poses(scene, 3, 4), sample_poses(scene, 6, 4)
+    simulate_sequence(scene, a, partial=partial, partial_every_s=0)
+    assert _partial_done(partial) == 3
+    got = simulate_sequence(scene, b, partial=partial, partial_every_s=0)
+    assert np.array_equal(got.object_positions, simulate_sequence(scene, b).object_positions)
+    # A whole saved sequence of the same poses is taken as it is: no frame is solved again.
+    again = simulate_sequence(scene, b, partial=partial)
+    assert np.array_equal(again.extra["step_ms"], got.extra["step_ms"])
+    partial.write_bytes(b"not an npz")
+    assert np.array_equal(simulate_sequence(scene, b, partial=partial).object_positions, got.object_positions)
+    with pytest.raises(InputError, match="partial_every_s"):
+        generate_dataset(SCENE, "ci", tmp_path, poses=b, progress=False, partial_every_s=-1)

@@ -24,9 +24,10 @@ A family sequence that still fails verification (SimulationError: even 16 sub-fr
 not converge) is replaced by a spare seed of the same split (``max_retries``); the manifest
 lists the rejected seeds and why, so any bias this introduces is visible.
 
-Resume: a sequence whose file exists, loads, matches the requested scene (its mesh
-and physics fingerprints) / seed / frames / solver options and (if the manifest lists it) has the
-listed sha256, is skipped. Sharding
+Resume: a sequence being simulated locally is saved every minute to ``<file>.partial``
+(:mod:`colgnn_core.sim.partial`), and a later run continues it from the saved frame. A sequence
+whose file exists, loads, matches the requested scene (its mesh and physics fingerprints) / seed /
+frames / solver options and (if the manifest lists it) has the listed sha256, is skipped. Sharding
 splits the ordered job list as ``jobs[i::n]`` so several machines can share a dataset;
 the manifest is merged (re-read, updated, atomically replaced) after every sequence. On a cluster, ``dask``
 (``colgnn generate --dask tcp://host:8786``) sends one task per sequence to a Dask scheduler
@@ -35,6 +36,7 @@ the manifest is merged (re-read, updated, atomically replaced) after every seque
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import multiprocessing as mp
@@ -47,72 +49,62 @@ from typing import Any
 import numpy as np
 
 from colgnn_core.errors import InputError, SimulationError
-from colgnn_core.io import SUBFRAME_KEYS, Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
+from colgnn_core.io import Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
 from colgnn_core.scenes import load_scene, sample_poses, split_seeds
 from colgnn_core.sim.cluster import check_workers, dask_client
 from colgnn_core.sim.ipc import IPCSimulator
+from colgnn_core.sim.partial import PARTIAL_EVERY_S, FrameRecord, PartialSaver, partial_key, partial_path
 
 MANIFEST = "manifest.json"
 SPLITS = ("train", "test", "both")
 
 
-def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, **sim_options: Any) -> Sequence:
+def simulate_sequence(scene, poses: np.ndarray, progress: bool = False, partial: str | Path | None = None,
+                      partial_every_s: float = PARTIAL_EVERY_S, **sim_options: Any) -> Sequence:
     """Simulate ``poses`` [T,7] (frame 0 = the initial tool pose) with IPC; return a verified Sequence.
 
     Poses are validated against the scene workspace (InputError naming the row). A frame that
     fails Newton or verification raises SimulationError naming the frame. ``sim_options`` go to
     :class:`colgnn_core.sim.ipc.IPCSimulator` (newton_tol, dhat_scale, dmin_scale, ...).
+    ``partial``: a partial file (:mod:`colgnn_core.sim.partial`) saved every ``partial_every_s`` seconds while
+    simulating, and continued from when it matches this scene, these poses and options. The caller removes it once
+    the sequence is written.
     """
     poses = scene.check_poses(poses)
     if len(poses) < 1:
         raise InputError("poses must have at least one row (frame 0)")
     sim = IPCSimulator(scene, initial_tool_pose=poses[0], **sim_options)
-    t_frames = len(poses)
-    obj = np.empty((t_frames, sim.n_obj, 3))
-    tool = np.empty((t_frames, sim.n_tool, 3))
-    iters = np.zeros(t_frames, dtype=np.int64)
-    ms = np.zeros(t_frames)
-    dist = np.zeros(t_frames)
-    kappa = np.zeros(t_frames)
-    subframes = np.ones(t_frames, dtype=np.int64)
-    path_frame, path_obj, path_tool = [], [], []
-    obj[0], tool[0], dist[0] = sim.positions, sim.tool_positions, sim.tool_distance()
-    frames = range(1, t_frames)
+    record = FrameRecord(len(poses), sim.n_obj, sim.n_tool)
+    record.first(sim.positions, sim.tool_positions, sim.tool_distance())
+    saver = PartialSaver(None if partial is None else Path(partial),
+                         partial_key(scene_stamp(scene), poses, sim_options), partial_every_s)
+    if saver.path is not None:
+        state = record.load(saver.path, saver.key)
+        if state is not None:
+            sim.restore(state)
+    frames = range(record.done + 1, len(poses))
     if progress:
         from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
 
-        frames = tqdm(frames, desc=f"{scene.name} frames", leave=False, unit="frame")
+        frames = tqdm(frames, desc=f"{scene.name} frames", leave=False, unit="frame", initial=record.done,
+                      total=len(poses) - 1)
     for k in frames:
         st = sim.step(poses[k])
-        obj[k], tool[k] = sim.positions, sim.tool_positions
-        iters[k], ms[k], dist[k], kappa[k] = st.newton_iterations, st.ms, st.min_distance, st.kappa
-        subframes[k] = st.subframes
-        for xo, xt in st.path:
-            path_frame.append(k)
-            path_obj.append(xo)
-            path_tool.append(xt)
-    recorded = {}
-    if path_frame:
-        recorded = dict(zip(SUBFRAME_KEYS, (np.asarray(path_frame, dtype=np.int64), np.asarray(path_obj),
-                                            np.asarray(path_tool))))
+        record.add(k, sim.positions, sim.tool_positions, st)
+        saver.maybe_save(record, sim.state)
     return Sequence(
-        object_positions=obj,
+        object_positions=record.object_positions,
         object_faces=np.asarray(scene.object.faces, dtype=np.int64),
-        tool_positions=tool,
+        tool_positions=record.tool_positions,
         tool_faces=np.asarray(scene.tool.faces, dtype=np.int64),
         tool_poses=poses,
         dt=float(scene.dt),
         extra={
             "object_tets": np.asarray(scene.object.tets, dtype=np.int64),
             "object_rest": np.asarray(scene.object.vertices, dtype=np.float64),
-            "newton_iterations": iters,
-            "step_ms": ms,
-            "min_distance": dist,
-            "kappa": kappa,
+            **record.extras(),
             "dhat": np.float64(sim.dhat),
             "dmin": np.float64(sim.dmin),
-            "subframes": subframes,
-            **recorded,
         },
     )
 
@@ -130,6 +122,7 @@ class _Job:
     sim_options: tuple  # sorted (key, value) pairs, picklable
     poses: np.ndarray | None = None
     fallback_seeds: tuple = ()  # tried in order if ``seed`` fails (same split's seed class: splits stay disjoint)
+    partial_every_s: float = PARTIAL_EVERY_S  # how often a local run saves the sequence's partial file
 
 
 def _sha256(path: Path) -> str:
@@ -200,17 +193,22 @@ def _matches(job: _Job, seq: Sequence, stamp: dict[str, str]) -> bool:
         return False
 
 
-def simulate_job(job: _Job, scene) -> dict:
-    """Simulate one job's sequence on ``scene`` (a worker's part: no file is written). Returns ``{"sequence",
-    "seed", "rejected", "wall_s", "load"}`` or, when every seed failed or the poses are bad, ``{"error",
-    "rejected", "failure"}`` (``failure``: the job's reproducible failure key, family jobs only)."""
+def simulate_job(job: _Job, scene, partial: bool = False, progress: bool = False) -> dict:
+    """Simulate one job's sequence on ``scene`` (a worker's part: no file but the partial one is written). Returns
+    ``{"sequence", "seed", "rejected", "wall_s", "load"}`` or, when every seed failed or the poses are bad,
+    ``{"error", "rejected", "failure"}`` (``failure``: the job's reproducible failure key, family jobs only).
+    ``partial``: save and continue the sequence's partial file beside ``job.file`` (a local run; a Dask worker's
+    files would be on its own machine). ``progress``: a progress bar over the frames."""
     rejected: list[dict] = []
     try:
         t0 = time.perf_counter()
         for seed in (job.seed, *job.fallback_seeds):
             poses = job.poses if job.poses is not None else sample_poses(scene, seed, job.frames)
             try:
-                seq = simulate_sequence(scene, poses, **dict(job.sim_options))
+                seq = simulate_sequence(scene, poses, progress=progress,
+                                        partial=partial_path(job.file) if partial else None,
+                                        partial_every_s=job.partial_every_s,
+                                        **dict(job.sim_options))
                 break
             except SimulationError as exc:
                 # A trajectory the verified solver cannot do (e.g. a coarse surface snapping past a
@@ -247,6 +245,7 @@ def save_job(job: _Job, result: dict, stamp: dict[str, str]) -> dict:
     )
     path = Path(job.file)
     save_sequence(path, seq)
+    partial_path(path).unlink(missing_ok=True)  # the sequence is whole: nothing left to continue
     entry = _entry(job, path, seq)
     entry["file"] = path.name
     entry["seed"] = None if seed < 0 else int(seed)
@@ -256,14 +255,15 @@ def save_job(job: _Job, result: dict, stamp: dict[str, str]) -> dict:
     return entry
 
 
-def _run_job(job: _Job) -> dict:
-    """Local worker: simulate one sequence and write it atomically. Returns its manifest entry or an error."""
+def _run_job(job: _Job, progress: bool = False) -> dict:
+    """Local worker: simulate one sequence (continuing its partial file) and write it atomically. Returns its
+    manifest entry or an error."""
     try:
         scene = load_scene(job.scene, job.resolution)
     except InputError as exc:
         return {"file": Path(job.file).name, "split": job.split, "seed": job.seed,
                 "error": f"InputError: {exc}", "rejected_seeds": []}
-    return save_job(job, simulate_job(job, scene), scene_stamp(scene))
+    return save_job(job, simulate_job(job, scene, partial=True, progress=progress), scene_stamp(scene))
 
 
 def _read_manifest(out_dir: Path) -> dict:
@@ -346,6 +346,7 @@ def generate_dataset(
     retry_failed: bool = False,
     dask: str | None = None,
     on_entry=None,
+    partial_every_s: float = PARTIAL_EVERY_S,
 ) -> dict:
     """Simulate a dataset of a scene into ``out_dir``; returns the manifest (dict).
 
@@ -369,6 +370,8 @@ def generate_dataset(
         dask: simulate on a Dask cluster instead of local processes: a scheduler address (``tcp://host:8786``)
             or ``local:N`` (:mod:`colgnn_core.sim.cluster`); one task per sequence, written here.
         on_entry: called with each finished sequence's manifest entry (or error entry), e.g. for a progress display.
+        partial_every_s: how often (s) a local run saves the sequence in progress to ``<file>.partial``, from which
+            an interrupted run continues (:mod:`colgnn_core.sim.partial`).
 
     Raises InputError for bad arguments (unknown scene, poses outside the workspace, unwritable
     folder) and SimulationError, after finishing the other sequences, if any sequence failed.
@@ -389,7 +392,9 @@ def generate_dataset(
     else:
         all_jobs = _family_jobs(scene_name, resolution, out, opts, split, sequences, test_sequences, frames,
                                 max_retries)
-    my_jobs = all_jobs[i_shard::n_shard]
+    if not float(partial_every_s) >= 0:
+        raise InputError(f"partial_every_s must be >= 0 seconds, got {partial_every_s}")
+    my_jobs = [dataclasses.replace(j, partial_every_s=float(partial_every_s)) for j in all_jobs[i_shard::n_shard]]
 
     header = {
         "scene": scene_name,
@@ -430,7 +435,7 @@ def generate_dataset(
     if dask is not None and todo:
         _run_on_dask(todo, scene, stamp, dask, record)
     else:
-        _run_jobs(todo, int(jobs), record)
+        _run_jobs(todo, int(jobs), record, progress)
     if bar is not None:
         bar.close()
     manifest = _read_manifest(out)
@@ -507,11 +512,12 @@ def _run_on_dask(todo: list[_Job], scene, stamp: dict[str, str], address: str, r
             client.cancel(list(futures))
 
 
-def _run_jobs(todo: list[_Job], jobs: int, record) -> None:
-    """Simulate ``todo`` in this process, or in ``jobs`` spawned worker processes; ``record`` each entry."""
+def _run_jobs(todo: list[_Job], jobs: int, record, progress: bool = False) -> None:
+    """Simulate ``todo`` in this process (``progress``: a bar over each sequence's frames), or in ``jobs`` spawned
+    worker processes; ``record`` each entry."""
     if jobs == 1 or len(todo) <= 1:
         for job in todo:
-            record(_run_job(job))
+            record(_run_job(job, progress))
         return
     ctx = mp.get_context("spawn")
     with ctx.Pool(processes=min(jobs, len(todo))) as pool:

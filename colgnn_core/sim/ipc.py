@@ -281,6 +281,31 @@ class IPCSimulator:
         if self._settle and np.any(self.gravity != 0) and (self.ground is not None or self.pinned.any()):
             self._settle_under_gravity()
 
+    def state(self) -> dict[str, np.ndarray]:
+        """What the next frame depends on, as arrays (for a checkpoint): positions of object and tool ``x``
+        [N+M,3] (m), object velocities ``v`` [N,3] (m/s), the barrier stiffness, the tool pose [7], the frame, and
+        whether the linear solver gave up on Jacobi CG. The linear solver's lagged factors are not kept: a restored
+        run solves its systems to the same tolerance from a fresh factor, so it agrees with an uninterrupted one to
+        solver tolerance, not bit for bit."""
+        return {"x": self.x.copy(), "v": self.v.copy(), "kappa": np.float64(self.kappa),
+                "tool_pose": self.tool_pose.copy(), "frame": np.int64(self.frame),
+                "jacobi_failed": np.bool_(self.linear.jacobi_failed)}
+
+    def restore(self, state: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`state` of the same scene and solver options (SimulationError if its shapes do
+        not fit this mesh)."""
+        x, v = np.asarray(state["x"], dtype=np.float64), np.asarray(state["v"], dtype=np.float64)
+        if x.shape != (self.n_all, 3) or v.shape != (self.n_obj, 3) or not (np.all(np.isfinite(x))
+                                                                            and np.all(np.isfinite(v))):
+            raise SimulationError(f"a saved simulator state of shape x {x.shape}, v {v.shape} does not fit this "
+                                  f"scene ({self.n_all} and {self.n_obj} vertices), or is not finite")
+        self.x, self.v = x.copy(), v.copy()
+        self.kappa = float(state["kappa"])
+        self.tool_pose = validate_pose(np.asarray(state["tool_pose"], dtype=np.float64))
+        self.frame = int(state["frame"])
+        self.linear = NewtonSystemSolver()
+        self.linear.jacobi_failed = bool(state["jacobi_failed"])
+
     @property
     def positions(self) -> np.ndarray:
         """Object vertex positions [N,3] (m), a copy."""
