@@ -27,8 +27,13 @@ Algorithm (all vectorised, numpy float64):
    (``w_k / sum w^2``, so the face point under the tool vertex moves by exactly the
    required amount); an object edge through a tool edge moves its end points likewise.
    The amount brings the pair to ``margin`` on its start side at t+1 (plus
-   ``margin * iteration`` for crossings that end on the right side: in-and-out
-   crossings). Several pushes on one vertex are averaged.
+   ``margin * iteration`` on later passes). A pair that ends on its start side with
+   the margin to spare crossed *in and out* during the step (a face the network
+   swings across the cone's tip and back): a push at t+1 would only move its
+   crossing time, so it is pushed where it crossed instead, along its normal at the
+   time of impact t*, by ``margin / t*`` at t+1 (the margin at t*). On the bunny's
+   first three family trajectories (self stage on) this took the steps with a
+   tool-pass fallback from 27 to 12 of 117. Several pushes on one vertex are averaged.
 
 The margin is ``max(0.5 dhat, MIN_MARGIN)``: ipctk's CCD (the test oracle) treats pairs
 closer than about 1e-4 m as colliding, so the published state keeps a 2e-4 m clearance.
@@ -204,14 +209,14 @@ class CollisionCorrector:
         self._extra_d: list = []
 
     # -- helpers --------------------------------------------------------------------------------------------------
-    def _hits(self, res, x1, T1) -> tuple[dict, int]:
-        """(pairs to resolve per kind, number of real crossings).
+    def _hits(self, res, x1, T1) -> tuple[dict, dict, int]:
+        """(pairs to resolve per kind, their times of impact per kind (inf: degenerate), number of real crossings).
 
         Real crossings are the narrow phase's hits. A *degenerate* pair (coplanar over the whole step,
         parallel edges) is not decided by the narrow phase; it is resolved too when its primitives are
         closer than the margin at t+1 (far ones cannot touch without a neighbouring non-degenerate
         pair crossing first; the exact oracle checks this in the tests)."""
-        out, n_hit = {}, 0
+        out, toi, n_hit = {}, {}, 0
         for k in ("vf", "fv", "ee"):
             nr = getattr(res, k)
             pairs = getattr(res.survivors, k)
@@ -221,7 +226,8 @@ class CollisionCorrector:
             if len(deg):
                 m[deg[self._pair_distance(k, pairs[deg], x1, T1) < self.margin]] = True
             out[k] = pairs[m]
-        return out, n_hit
+            toi[k] = np.where(nr.hit[m], nr.toi[m], np.inf)
+        return out, toi, n_hit
 
     def _pair_distance(self, kind: str, pairs: np.ndarray, X, T) -> np.ndarray:
         """Distances [K] (m) at one time between the primitives of candidate pairs."""
@@ -310,8 +316,14 @@ class CollisionCorrector:
         """trigger distance + the tool mesh's tessellation bound (m): see :func:`_proximity_pairs`."""
         return TRIGGER * self.margin + self.mesh_margin
 
-    def _pushes(self, hits: dict, x0, x1, T0, T1, iteration: int) -> tuple[np.ndarray, np.ndarray]:
-        """Averaged displacement (vertex ids [K], displacements [K,3]) resolving the crossing pairs."""
+    def _pushes(self, hits: dict, toi: dict, x0, x1, T0, T1, iteration: int) -> tuple[np.ndarray, np.ndarray]:
+        """Averaged displacement (vertex ids [K], displacements [K,3]) resolving the crossing pairs ``hits`` (their
+        times of impact ``toi``, per kind [K]).
+
+        A pair that ends on its start side at t+1 with the margin to spare crossed *in and out* during the step: a
+        push along its t+1 normal moves its crossing time without removing it. Such a pair is pushed where it
+        crossed instead: along its normal at the time of impact t*, away from the side it started on, by
+        margin / t* at t+1, i.e. by the margin at t* (minimal-norm barycentric weights as below)."""
         F, E = self.surface.faces, self.surface.edges
         G, H = self.tool_surface.faces, self.tool_surface.edges
         extra = self.margin * iteration
@@ -325,6 +337,16 @@ class CollisionCorrector:
             s = np.sign(f0)
             return np.where(s == 0, np.where(f1 == 0, 1.0, -np.sign(f1)), s)
 
+        def at(A0, A1, t):
+            return A0 + t[:, None] * (A1 - A0)
+
+        def crossed(kind, s, sep):
+            """(in-and-out mask, time of impact clamped below by MIN_PUSH_TIME, amount at t+1) of a kind's hits."""
+            t = toi[kind]
+            io = np.isfinite(t) & (s * sep >= self.margin)
+            tc = np.clip(np.where(np.isfinite(t), t, 1.0), MIN_PUSH_TIME, 1.0)
+            return io, tc, self.margin / tc
+
         vf = hits["vf"]
         if len(vf):  # object vertex p vs tool face (a,b,c): move p to the face's start side
             i, f = vf[:, 0], G[vf[:, 1]]
@@ -334,8 +356,13 @@ class CollisionCorrector:
             sep = ((x1[i] - T1[f[:, 0]]) * n1).sum(1)
             s = side(f0, sep)
             amount = np.maximum(self.margin - s * sep, 0.0) + extra
+            io, tc, a_io = crossed("vf", s, sep)
+            a, b, c = (at(T0[f[:, k]], T1[f[:, k]], tc) for k in range(3))
+            nt, _ = unit(np.cross(b - a, c - a))
+            n = np.where(io[:, None], nt, n1)
+            amount = np.where(io, a_io, amount)
             vids.append(i)
-            disps.append((s * amount)[:, None] * n1)
+            disps.append((s * amount)[:, None] * n)
         fv = hits["fv"]
         if len(fv):  # tool vertex p vs object face (a,b,c): move the face away from p, barycentric weights
             j, f = fv[:, 0], F[fv[:, 1]]
@@ -347,6 +374,13 @@ class CollisionCorrector:
             s = side(f0, sep)
             amount = np.maximum(self.margin - s * sep, 0.0) + extra
             w = _barycentric_clamped(T1[j], a1, b1, c1)
+            io, tc, a_io = crossed("fv", s, sep)
+            if io.any():
+                a, b, c = (at(x0[f[:, k]], x1[f[:, k]], tc) for k in range(3))
+                nt, _ = unit(np.cross(b - a, c - a))
+                n1 = np.where(io[:, None], nt, n1)
+                w = np.where(io[:, None], _barycentric_clamped(at(T0[j], T1[j], tc), a, b, c), w)
+                amount = np.where(io, a_io, amount)
             scale = amount / (w * w).sum(1)
             for k in range(3):
                 vids.append(f[:, k])
@@ -367,6 +401,17 @@ class CollisionCorrector:
             sep = ((u1 - k1) * n1).sum(1)
             s = np.where(par, 1.0, side(f0, sep))
             amount = np.maximum(self.margin - s * sep, 0.0) + extra
+            io, tc, a_io = crossed("ee", s, sep)
+            io &= ~par
+            if io.any():
+                u, v = at(x0[e[:, 0]], x1[e[:, 0]], tc), at(x0[e[:, 1]], x1[e[:, 1]], tc)
+                k_, l_ = at(T0[h[:, 0]], T1[h[:, 0]], tc), at(T0[h[:, 1]], T1[h[:, 1]], tc)
+                nt, nnt = unit(np.cross(v - u, l_ - k_))
+                io &= nnt > 0
+                at_t, _ = _segment_params(u, v, k_, l_)
+                n1 = np.where(io[:, None], nt, n1)
+                alpha = np.where(io, at_t, alpha)
+                amount = np.where(io, a_io, amount)
             w = np.stack([1.0 - alpha, alpha], axis=1)
             scale = amount / (w * w).sum(1)
             for k in range(2):
@@ -472,7 +517,7 @@ class CollisionCorrector:
         for it in range(self.max_iterations + 1):
             t = time.perf_counter()
             res = self.detector.detect(x0, x1, T0, T1, pose0, pose1, check=False)
-            hits, _ = self._hits(res, x1, T1)
+            hits, toi, _ = self._hits(res, x1, T1)
             t_detect += time.perf_counter() - t
             out.iterations = it + 1
             if it == 0:
@@ -493,7 +538,7 @@ class CollisionCorrector:
             lmax = longest_edge(x1, self.surface.edges)  # once per pass: SDF reach and the kernel
             sdf = self._surface_sdf(x1, pose1, self._proximity_level + lmax)
             self._extra_v, self._extra_d, n_close = self._proximity(x1, T1, pose1, sdf, lmax)
-            vid, disp = self._pushes(hits, x0, x1, T0, T1, it)
+            vid, disp = self._pushes(hits, toi, x0, x1, T0, T1, it)
             if len(vid):
                 x1[vid] += disp
             pushed = self._project(x1, pose1, None if len(vid) or n_close else sdf)
