@@ -131,5 +131,5 @@ def format_bench(r: dict) -> str:
                  f"{r['crossings_after_correction']}, fallbacks {r['fallbacks']}")
     if r.get("kernel_threads_reduced_steps"):
         lines.append(f"busy machine: the collision kernels ran on 1 thread in {r['kernel_threads_reduced_steps']} "
-                     f"steps (other processes held the cores); these timings are not the free machine's")
+                     f"steps (tasks waited for a CPU); these timings are not the free machine's")
     return "\n".join(lines)

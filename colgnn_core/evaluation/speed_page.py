@@ -30,15 +30,16 @@ def speed_row(r: dict) -> str:
 
 
 def busy_note(results: list[dict]) -> str:
-    """A sentence naming the scenes whose collision kernels ran on 1 thread in some steps because other processes
-    held the cores (``kernel_threads_reduced_steps``; :class:`~colgnn_core.runtime.threads.ContentionGuard`), or
+    """A sentence naming the scenes whose collision kernels ran on 1 thread in some steps because tasks waited for a
+    CPU (``kernel_threads_reduced_steps``; :class:`~colgnn_core.runtime.threads.ContentionGuard`), or
     "" when none did."""
     busy = [f"`{r['scene']}` {r['kernel_threads_reduced_steps']} of {r['frames'] - 1} steps" for r in results
             if r.get("kernel_threads_reduced_steps")]
     if not busy:
         return ""
-    return (f"Other processes held the cores during the run: the collision kernels ran on 1 thread in "
-            f"{', '.join(busy)}, so those times are not a free machine's.")
+    return (f"Tasks waited for a CPU during the run (the kernel's stall counter; other processes, or this one's own "
+            f"threads, held the cores): the collision kernels ran on 1 thread in {', '.join(busy)}, so those times "
+            "are not a free machine's.")
 
 
 def speed_markdown(results: list[dict], command: str, load: float | None = None) -> str:
