@@ -337,9 +337,6 @@ class CollisionCorrector:
             s = np.sign(f0)
             return np.where(s == 0, np.where(f1 == 0, 1.0, -np.sign(f1)), s)
 
-        def at(A0, A1, t):
-            return A0 + t[:, None] * (A1 - A0)
-
         def crossed(kind, s, sep):
             """(in-and-out mask, time of impact clamped below by MIN_PUSH_TIME, amount at t+1) of a kind's hits."""
             t = toi[kind]
@@ -357,12 +354,13 @@ class CollisionCorrector:
             s = side(f0, sep)
             amount = np.maximum(self.margin - s * sep, 0.0) + extra
             io, tc, a_io = crossed("vf", s, sep)
-            a, b, c = (at(T0[f[:, k]], T1[f[:, k]], tc) for k in range(3))
-            nt, _ = unit(np.cross(b - a, c - a))
-            n = np.where(io[:, None], nt, n1)
-            amount = np.where(io, a_io, amount)
+            if io.any():
+                a, b, c = (_at(T0[f[:, k]], T1[f[:, k]], tc) for k in range(3))
+                nt, _ = unit(np.cross(b - a, c - a))
+                n1 = np.where(io[:, None], nt, n1)
+                amount = np.where(io, a_io, amount)
             vids.append(i)
-            disps.append((s * amount)[:, None] * n)
+            disps.append((s * amount)[:, None] * n1)
         fv = hits["fv"]
         if len(fv):  # tool vertex p vs object face (a,b,c): move the face away from p, barycentric weights
             j, f = fv[:, 0], F[fv[:, 1]]
@@ -376,10 +374,10 @@ class CollisionCorrector:
             w = _barycentric_clamped(T1[j], a1, b1, c1)
             io, tc, a_io = crossed("fv", s, sep)
             if io.any():
-                a, b, c = (at(x0[f[:, k]], x1[f[:, k]], tc) for k in range(3))
+                a, b, c = (_at(x0[f[:, k]], x1[f[:, k]], tc) for k in range(3))
                 nt, _ = unit(np.cross(b - a, c - a))
                 n1 = np.where(io[:, None], nt, n1)
-                w = np.where(io[:, None], _barycentric_clamped(at(T0[j], T1[j], tc), a, b, c), w)
+                w = np.where(io[:, None], _barycentric_clamped(_at(T0[j], T1[j], tc), a, b, c), w)
                 amount = np.where(io, a_io, amount)
             scale = amount / (w * w).sum(1)
             for k in range(3):
@@ -404,8 +402,8 @@ class CollisionCorrector:
             io, tc, a_io = crossed("ee", s, sep)
             io &= ~par
             if io.any():
-                u, v = at(x0[e[:, 0]], x1[e[:, 0]], tc), at(x0[e[:, 1]], x1[e[:, 1]], tc)
-                k_, l_ = at(T0[h[:, 0]], T1[h[:, 0]], tc), at(T0[h[:, 1]], T1[h[:, 1]], tc)
+                u, v = _at(x0[e[:, 0]], x1[e[:, 0]], tc), _at(x0[e[:, 1]], x1[e[:, 1]], tc)
+                k_, l_ = _at(T0[h[:, 0]], T1[h[:, 0]], tc), _at(T0[h[:, 1]], T1[h[:, 1]], tc)
                 nt, nnt = unit(np.cross(v - u, l_ - k_))
                 io &= nnt > 0
                 at_t, _ = _segment_params(u, v, k_, l_)
@@ -436,10 +434,6 @@ class CollisionCorrector:
         F, E = self.surface.faces, self.surface.edges
         G, H = self.tool_surface.faces, self.tool_surface.edges
         vids, disps = [], []
-
-        def at(A0, A1, t):
-            return A0 + t[:, None] * (A1 - A0)
-
         def unit(v):
             return v / np.maximum(np.sqrt((v * v).sum(1)), 1e-300)[:, None]
 
@@ -451,8 +445,8 @@ class CollisionCorrector:
             amount = (self.margin - cl.d[kind]) / np.maximum(t, MIN_PUSH_TIME)
             if kind == "vf":  # object vertex vs tool face
                 i, g = pairs[:, 0], G[pairs[:, 1]]
-                p = at(x0[i], x1[i], t)
-                a, b, c = (at(T0[g[:, k]], T1[g[:, k]], t) for k in range(3))
+                p = _at(x0[i], x1[i], t)
+                a, b, c = (_at(T0[g[:, k]], T1[g[:, k]], t) for k in range(3))
                 w = _closest_barycentric(p, a, b, c)
                 n = unit(p - (w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c))
                 vids.append(i)
@@ -460,15 +454,15 @@ class CollisionCorrector:
                 continue
             if kind == "fv":  # tool vertex vs object face
                 j, f = pairs[:, 0], F[pairs[:, 1]]
-                p = at(T0[j], T1[j], t)
-                a, b, c = (at(x0[f[:, k]], x1[f[:, k]], t) for k in range(3))
+                p = _at(T0[j], T1[j], t)
+                a, b, c = (_at(x0[f[:, k]], x1[f[:, k]], t) for k in range(3))
                 w = _closest_barycentric(p, a, b, c)
                 n = unit(w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c - p)
                 ids = f
             else:  # object edge vs tool edge
                 e, h = E[pairs[:, 0]], H[pairs[:, 1]]
-                u, v = at(x0[e[:, 0]], x1[e[:, 0]], t), at(x0[e[:, 1]], x1[e[:, 1]], t)
-                k_, l_ = at(T0[h[:, 0]], T1[h[:, 0]], t), at(T0[h[:, 1]], T1[h[:, 1]], t)
+                u, v = _at(x0[e[:, 0]], x1[e[:, 0]], t), _at(x0[e[:, 1]], x1[e[:, 1]], t)
+                k_, l_ = _at(T0[h[:, 0]], T1[h[:, 0]], t), _at(T0[h[:, 1]], T1[h[:, 1]], t)
                 alpha, beta = _segment_params(u, v, k_, l_)
                 n = unit(u + alpha[:, None] * (v - u) - (k_ + beta[:, None] * (l_ - k_)))
                 w = np.stack([1.0 - alpha, alpha], axis=1)
@@ -645,6 +639,11 @@ def _barycentric_clamped_kernel(p, a, b, c):
 
 def _rows(*arrays):
     return tuple(np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3) for x in arrays)
+
+
+def _at(A0: np.ndarray, A1: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rows [K,3] of the straight motion A0 -> A1 ([K,3]) at the times t [K] in [0,1]."""
+    return A0 + t[:, None] * (A1 - A0)
 
 
 def _segment_params(u, v, k, l) -> tuple[np.ndarray, np.ndarray]:
