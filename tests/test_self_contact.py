@@ -75,6 +75,12 @@ def pose(x, y, z):
     return np.array([x, y, z, 0.0, 0.0, 0.0, 1.0])
 
 
+def turned(x, y, z):
+    """A pose turned by a hair (1e-6 rad about z): a step to it is no pure translation, so the tool fallback's
+    sliding tier and certificate stay out and its rigid region is what these cases exercise."""
+    return np.array([x, y, z, 0.0, 0.0, np.sin(5e-7), np.cos(5e-7)])
+
+
 def test_two_patches_pushed_through_each_other_come_out_clean(tool):
     rest, F = two_patches()
     x1 = bulge(rest)
@@ -165,7 +171,7 @@ def test_the_fallback_repairs_a_flipped_triangle_that_its_rigid_region_carries_w
     stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: straight to the fallback
     corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
     top = x0[centre, 2] + 0.0005 + 0.008  # the sphere 0.5 mm above the raised vertex, then 0.3 mm lower
-    p0, p1 = pose(*x0[centre, :2], top), pose(*x0[centre, :2], top - 3e-4)
+    p0, p1 = pose(*x0[centre, :2], top), turned(*x0[centre, :2], top - 3e-4)
     T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
     carried = corr.rigid_fallback(x0, x0.copy(), p0, p1, T0, T1, corr.clearance.clearance)
     assert carried[F[stage.validity.invalid(x0)]].all()  # the rigid region holds the flipped triangles
@@ -179,7 +185,7 @@ def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pai
     x0 = rest + np.array([0.0, 0.0, 0.002])
     stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: the input is the only checked state
     corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
-    p0, p1 = pose(0, 0, 0.002 + 0.008 + 3e-4), pose(3e-3, 0, 0.002 + 0.008 + 3e-4)  # a 3 mm drag over the surface
+    p0, p1 = pose(0, 0, 0.002 + 0.008 + 3e-4), turned(3e-3, 0, 0.002 + 0.008 + 3e-4)  # a 3 mm drag over the surface
     T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
     x1 = x0.copy()
     b, c = (v for v in F[np.flatnonzero((F == 0).any(axis=1))[0]] if v != 0)
@@ -228,7 +234,7 @@ def test_fallback_is_clean_for_self_and_tool(tool):
     x1 = bulge(rest)
     corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
     stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair: straight to the fallback
-    p0, p1 = pose(0, 0, 0.0165), pose(0.002, 0, 0.015)  # the tool presses on the upper patch and drags
+    p0, p1 = pose(0, 0, 0.0165), turned(0.002, 0, 0.015)  # the tool presses on the upper patch and drags
     T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
     c = corr.correct(rest, x1, p0, p1, T0, T1)
     out = stage.correct(corr, rest, c.positions, p0, p1, T0, T1)
@@ -263,13 +269,13 @@ def test_a_fallback_region_that_must_spread_over_the_object_grows_in_logarithmic
 
 
 def test_the_repair_rounds_stop_at_a_fixed_point_with_the_outcome_of_running_them_all(tool, monkeypatch):
-    """The sphere presses the upper patch 8.5 mm down through the lower one while moving 2 mm: from round 4 on the
+    """The sphere presses the upper patch 9 mm down through the lower one while moving 3 mm: from round 5 on the
     rounds return the state they start from. They stop there; the outcome is bit for bit that of all rounds."""
     import colgnn_core.collision.self_contact as self_contact
 
     rest, F = two_patches()
     h = 0.006 + 0.008 + 3e-4  # the sphere just above the upper patch
-    p0, p1 = pose(0, 0, h), pose(0.002, 0, h - 0.0085)
+    p0, p1 = pose(0, 0, h), pose(0.003, 0, h - 0.009)
     T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
 
     def run():

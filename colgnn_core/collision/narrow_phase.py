@@ -196,7 +196,10 @@ def _inside_at(P, A, B, C, is_ee):
         x, y, w = vec_sub(B, A), vec_sub(C, A), vec_sub(P, A)
     xx, xy, yy, wx, wy = vec_dot(x, x), vec_dot(x, y), vec_dot(y, y), vec_dot(w, x), vec_dot(w, y)
     den = xx * yy - xy * xy
-    if not den > 1e-24 * (xx * yy) + 1e-300:
+    # Parallel (sin^2 of the angle below 1e-13): the closest points are undefined. den carries a rounding error of a
+    # few ulp of xx * yy, so a tighter bound let two exactly parallel edges (a grid edge under a tool edge, 12 mm
+    # apart) through with garbage parameters, as a crossing no push could remove.
+    if not den > 1e-13 * (xx * yy) + 1e-300:
         return False, True
     u1 = (yy * wx - xy * wy) / den
     u2 = (xx * wy - xy * wx) / den
