@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from colgnn_core.runtime.threads import (MAX_INTERVAL_S, QUIET_SAMPLES, STALL_FRACTION, ContentionGuard,
-                                         auto_threads, cpu_stall_us)
+                                         auto_threads, cpu_stall_us, other_runnable_tasks)
 from tests.helpers import train_data as fx
 from tests.helpers.correction_cases import make_model
 
@@ -21,15 +21,20 @@ from tests.helpers.correction_cases import make_model
 class FakeMachine:
     """A stall counter and a clock: each call to ``tick`` advances 40 ms (a 25 Hz step) with ``busy`` of it stalled."""
 
-    def __init__(self):
-        self.t, self.stalled_us, self.busy = 0.0, 0, 0.0
+    def __init__(self, own: bool = False):
+        self.t, self.stalled_us, self.busy, self.own = 0.0, 0, 0.0, own
+        self.others_now = 0
 
     def tick(self, busy: float) -> None:
+        """``busy``: the stalled fraction; caused by another process's runnable task unless the machine is ``own``
+        (this process's own threads, as in one process benching scene after scene)."""
         self.t += 0.04
         self.stalled_us += int(busy * 0.04e6)
+        self.others_now = 1 if busy > 0 and not self.own else 0
 
     def guard(self, requested: int = 2, **kw) -> ContentionGuard:
-        return ContentionGuard(requested, stall=lambda: self.stalled_us, clock=lambda: self.t, **kw)
+        return ContentionGuard(requested, stall=lambda: self.stalled_us, clock=lambda: self.t,
+                               others=lambda: self.others_now, **kw)
 
 
 def _run(machine: FakeMachine, guard: ContentionGuard, busy: list[float]) -> list[int]:
@@ -105,6 +110,31 @@ def test_cpu_stall_us_reads_the_machine_or_says_it_cannot(tmp_path):
     assert cpu_stall_us(str(good)) == 12345
 
 
+def test_guard_keeps_the_threads_when_only_this_process_stalls_the_cores():
+    """One process benching scene after scene: its own threads make tasks wait (stall 0.5), and no other process has
+    a runnable task. Not contention: the kernels keep their threads (they lost them in 10-18 of 19 steps before)."""
+    m = FakeMachine(own=True)
+    g = m.guard(2)
+    assert _run(m, g, [0.5] * 30) == [2] * 30 and g.reduced_steps == 0
+    m.own = False  # then a real neighbour starts
+    beside = _run(m, g, [0.5] * 5)
+    assert beside[0] == 2 and beside[1:] == [1] * 4
+
+
+def test_other_runnable_tasks_reads_the_machine_or_says_it_cannot(tmp_path):
+    n = other_runnable_tasks()
+    assert n is None or n >= 0
+    (tmp_path / "loadavg").write_text("0.50 0.40 0.30 3/250 12345\n")
+    task = tmp_path / "task"
+    for tid, state in ((11, "R"), (12, "S"), (13, "R")):
+        (task / str(tid)).mkdir(parents=True)
+        (task / str(tid) / "stat").write_text(f"{tid} (py (thread)) {state} 1 2 3\n")
+    assert other_runnable_tasks(str(tmp_path / "loadavg"), str(task)) == 1  # 3 running, 2 of them ours
+    assert other_runnable_tasks(str(tmp_path / "missing"), str(task)) is None
+    (tmp_path / "bad").write_text("garbage\n")
+    assert other_runnable_tasks(str(tmp_path / "bad"), str(task)) is None
+
+
 def _cpu_ticks(pid: int) -> int:
     """User + system clock ticks a process has run (``/proc/PID/stat`` fields 14 and 15)."""
     with open(f"/proc/{pid}/stat") as f:
@@ -148,4 +178,5 @@ def test_predictor_steps_its_kernels_on_the_guards_count():
         m.tick(busy)
         counts.append(p.step(pose).kernel_threads)
         assert numba.get_num_threads() == counts[-1]
-    assert counts == [2, 2, 1, 1, 1]  # 0.9 of an interval stalled trips the smoothed level at once
+    assert counts == [2, 2, 2, 1, 1]  # 0.9 of an interval stalled trips the smoothed level at once, and the second
+    # sample of another process's runnable task confirms it a step later

@@ -14,12 +14,15 @@ import os
 import time
 from collections.abc import Callable
 
-__all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us"]
+__all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us",
+           "other_runnable_tasks"]
 
 QUIET_SAMPLES = 10     # uncontended calls in a row before the kernels get their threads back (0.4 s at 25 Hz)
 STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
 STALL_SMOOTHING = 0.25  # weight of the latest interval in the smoothed fraction (a busy neighbour trips it in 2 calls)
 MAX_INTERVAL_S = 1.0   # a longer interval between calls says little about now (an idle node, a solver run between)
+OTHERS_WINDOW = 3      # contended also needs another process's task runnable in 2 of the last 3 samples of ...
+OTHERS_NEEDED = 2      # ... other_runnable_tasks, taken only while the smoothed stall is above half STALL_FRACTION
 
 
 def auto_threads(cpu_count: int | None = None) -> int:
@@ -45,6 +48,25 @@ def cpu_stall_us(path: str = "/proc/pressure/cpu") -> int | None:
         return None
 
 
+def other_runnable_tasks(loadavg: str = "/proc/loadavg", tasks: str = "/proc/self/task") -> int | None:
+    """Runnable tasks on the machine that are not this process's threads, now: the running count of
+    ``/proc/loadavg`` minus this process's threads in state R (the reading thread among them). None where it cannot
+    be read. A snapshot: a busy process is in it at every read, this process's own parallel workers never are."""
+    try:
+        with open(loadavg, "rb") as f:
+            running = int(f.read().split()[3].split(b"/")[0])
+        own = 0
+        for tid in os.listdir(tasks):
+            try:
+                with open(f"{tasks}/{tid}/stat", "rb") as f:
+                    own += f.read().rsplit(b")", 1)[1].split()[0] == b"R"
+            except (OSError, IndexError):
+                continue  # the thread ended between the listing and the read
+    except (OSError, IndexError, ValueError):
+        return None
+    return max(running - own, 0)
+
+
 class ContentionGuard:
     """The thread count for the collision kernels of the next step: ``requested``, or 1 while other work keeps the
     machine's cores busy.
@@ -56,6 +78,12 @@ class ContentionGuard:
     fraction above ``STALL_FRACTION`` is contended. An interval longer than ``MAX_INTERVAL_S`` is not counted:
     in ``colgnn bench`` the IPC solver's threads ran in the 2 s before the Predictor's second step.
 
+    The stall counts this process's own threads too: in one ``colgnn bench`` process a later scene ran its kernels
+    on 1 thread in 10-18 of 19 steps on a quiet machine (docs/COLLISION_GUARANTEE.md, session 21). So a high stall
+    is contention only when another process has a runnable task as well (:func:`other_runnable_tasks`, sampled only
+    while the smoothed stall is above half ``STALL_FRACTION``, in ``OTHERS_NEEDED`` of the last ``OTHERS_WINDOW``
+    samples). A busy neighbour is in every sample; the process's own parallel workers never are.
+
     The guard drops to 1 thread at the first contended call, and gives the threads back after ``quiet``
     uncontended calls in a row. One thread costs at most the parallel speed-up (about 10% of a step), while a
     parallel region beside a busy process can cost milliseconds, hundreds of times a step. Results do not depend
@@ -66,14 +94,18 @@ class ContentionGuard:
         stall: the machine's stall time so far (us), or None if unknown (then the guard trusts the request).
         clock: seconds, monotonic.
         quiet: uncontended calls in a row before ``requested`` threads are used again.
+        others: runnable tasks of other processes now, or None if unknown (then the stall alone decides); the
+            argument None: the stall alone decides.
     """
 
     def __init__(self, requested: int, stall: Callable[[], int | None] = cpu_stall_us,
-                 clock: Callable[[], float] = time.perf_counter, quiet: int = QUIET_SAMPLES):
+                 clock: Callable[[], float] = time.perf_counter, quiet: int = QUIET_SAMPLES,
+                 others: Callable[[], int | None] | None = other_runnable_tasks):
         if requested < 1:
             raise ValueError(f"requested threads must be >= 1, got {requested}")
         self.requested = int(requested)
-        self.stall, self.clock, self.quiet = stall, clock, int(quiet)
+        self.stall, self.clock, self.quiet, self.others = stall, clock, int(quiet), others
+        self._others_seen: list[bool] = []  # per sample while the stall is high: another process's task runnable
         self.calm = self.quiet  # uncontended calls in a row: the request is trusted from the start
         self.reduced_steps = 0  # calls that answered fewer threads than requested
         self.level = 0.0  # the smoothed stall fraction
@@ -88,8 +120,22 @@ class ContentionGuard:
         if last is not None and now[0] is not None and 0 < now[1] - last[1] <= MAX_INTERVAL_S:
             fraction = (now[0] - last[0]) * 1e-6 / (now[1] - last[1])
             self.level += STALL_SMOOTHING * (fraction - self.level)
-        self.calm = 0 if self.level > STALL_FRACTION else self.calm + 1
+        others = self._others_busy()  # samples from half the threshold on, so two samples are in at the threshold
+        self.calm = 0 if self.level > STALL_FRACTION and others else self.calm + 1
         if self.calm >= self.quiet:
             return self.requested
         self.reduced_steps += 1
         return 1
+
+    def _others_busy(self) -> bool:
+        """Another process has had a runnable task in ``OTHERS_NEEDED`` of the last ``OTHERS_WINDOW`` samples (taken
+        only while the smoothed stall is above half ``STALL_FRACTION``; forgotten when it falls below)."""
+        if self.others is None:
+            return True
+        if self.level <= 0.5 * STALL_FRACTION:
+            self._others_seen.clear()
+            return False
+        n = self.others()
+        self._others_seen.append(n is None or n >= 1)
+        del self._others_seen[:-OTHERS_WINDOW]
+        return sum(self._others_seen) >= OTHERS_NEEDED
