@@ -19,7 +19,7 @@ import torch
 
 from colgnn_core.collision.clearance import CLEARANCE
 from colgnn_core.collision.correction import (RIGID, SLIDE, STAY, CollisionCorrector, certify_translating,
-                                              certify_triangles, rigid_step)
+                                              certify_triangles, rigid_step, sliding_positions)
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import family_poses
 from colgnn_core.collision.clearance import ClearanceResult
@@ -190,6 +190,29 @@ def test_sliding_certificate_is_sound_and_not_vacuous(name):
     assert ok.sum() > 0.5 * clear.sum() and (~ok & (low < 0)).sum() == (low < 0).sum()
     # Splitting is what proves a triangle wrapped around a sharp feature: fewer pass unsplit.
     assert certify_translating(z0, z1, lambda z: tool.sdf_grad(z, pose0), 1e-4, CLEARANCE, depth=0).sum() < ok.sum()
+
+
+@pytest.mark.parametrize("name", ["knife_torus", "cone_bunny", "sphere_mat"])
+def test_a_sliding_vertex_never_comes_nearer_the_tool_than_it_was(name):
+    """sliding_positions: along the straight path in the frame of a translating tool, the SDF stays at least what it
+    was at t (convexity), while the part of the proposal along the tool is kept."""
+    tool = ci_scene(name).tool
+    pose0 = np.array([0.01, -0.02, 0.03, *axis_angle_quat([1.0, 0.2, 0.0], 0.3)])
+    move = np.array([0.004, -0.002, -0.003])
+    rng = np.random.default_rng(5)
+    x0 = tool.world_vertices(pose0)[rng.integers(0, len(tool.vertices), 2000)] + rng.normal(scale=0.003,
+                                                                                           size=(2000, 3))
+    d0, g0 = tool.sdf_grad(x0, pose0)
+    x0, d0, g0 = x0[d0 > 0], d0[d0 > 0], g0[d0 > 0]
+    x1 = x0 + move + rng.normal(scale=0.004, size=x0.shape)  # proposals, many of them inside the tool
+    slid = sliding_positions(x0, x1, move, g0)
+    s = np.linspace(0.0, 1.0, 21)[:, None, None]
+    path = x0[None] + s * (slid - move - x0)[None]  # the tool's frame at t: z(s) = x(s) - s move
+    low = tool.sdf(path.reshape(-1, 3), pose0).reshape(len(s), -1).min(axis=0)
+    assert (low >= d0 - 1e-12).all()
+    away = ((x1 - x0 - move) * g0).sum(axis=1) >= 0  # proposals that move away from the tool are kept whole
+    np.testing.assert_allclose(slid[away], x1[away], atol=1e-15)
+    assert np.allclose(((slid - x0 - move) * g0).sum(axis=1)[~away], 0.0, atol=1e-15)
 
 
 def test_fallback_lets_a_knife_gliding_along_the_ring_slide_past_instead_of_carrying_the_surface():
