@@ -145,9 +145,9 @@ class CorrectionResult:
     tool-vertex/object-face); *_after: crossings the fast check finds in the output;
     penetrating_after: surface vertices with tool SDF < 0 in the output; iterations: detect
     passes used; fallback: the safe fallback was used; region: vertices moved rigidly by the
-    fallback; stayed: vertices it kept where they were at t; moved: vertices whose position changed;
-    clearance_pairs: pairs found closer than the clearance during the step (summed over passes); timings_ms: detect,
-    resolve, clearance, fallback, total.
+    fallback; stayed: vertices it let slide along the tool or kept where they were at t; moved: vertices whose
+    position changed; clearance_pairs: pairs found closer than the clearance during the step (summed over passes);
+    timings_ms: detect, resolve, clearance, fallback, total.
     """
 
     positions: np.ndarray
@@ -665,9 +665,10 @@ class CollisionCorrector:
         if sliding:
             give_way[S] = sliding_positions(x0[S], x1[S], move, self.tool.sdf_grad(x0[S], pose0)[1])
         levels = np.stack([x1, give_way, x0 @ R.T + p])  # [3,N,3], by step: proposed, giving way, rigid
+        carried = len(levels) - 1  # the rigid step
         step = np.zeros(self.n, dtype=np.int8)
         if region is not None:
-            step[np.asarray(region, dtype=bool)] = 2
+            step[np.asarray(region, dtype=bool)] = carried
         rows = np.arange(self.n)
         F = self.faces
         for _ in range(2 * len(S) + 1):  # every round raises a vertex: at most 2|S| rounds (in practice a few)
@@ -675,7 +676,7 @@ class CollisionCorrector:
             s1 = np.full(self.n, np.inf)
             s1[S] = self.tool.sdf(cand[S], pose1)
             ok = certify_triangles(F, x0, cand, s0, s1, D, self.mesh_margin, clearance)
-            ok |= (step[F] == 2).all(axis=1)
+            ok |= (step[F] == carried).all(axis=1)
             if move is not None and not ok.all():
                 todo = np.flatnonzero(~ok)
                 ok[todo] = certify_translating(x0[F[todo]], (cand - move)[F[todo]],
