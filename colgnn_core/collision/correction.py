@@ -658,12 +658,14 @@ class CollisionCorrector:
         D = float(np.sqrt(((T1 - T0) ** 2).sum(1)).max())
         S = self.surface_ids
         s0 = np.full(self.n, np.inf)
-        s0[S] = self.tool.sdf(x0[S], pose0)
         move = _sliding_translation(T0, T1)
         give_way = x0.copy()
         sliding = slide and move is not None
-        if sliding:
-            give_way[S] = sliding_positions(x0[S], x1[S], move, self.tool.sdf_grad(x0[S], pose0)[1])
+        if sliding:  # the SDF and its gradient at t in one evaluation
+            s0[S], g0 = self.tool.sdf_grad(x0[S], pose0)
+            give_way[S] = sliding_positions(x0[S], x1[S], move, g0)
+        else:
+            s0[S] = self.tool.sdf(x0[S], pose0)
         levels = np.stack([x1, give_way, x0 @ R.T + p])  # [3,N,3], by step: proposed, giving way, rigid
         carried = len(levels) - 1  # the rigid step
         step = np.zeros(self.n, dtype=np.int8)
