@@ -13,7 +13,7 @@ import pytest
 from colgnn_core.collision.correction import CollisionCorrector
 from colgnn_core.collision.exact import self_intersects, tool_intersects, tool_step_free
 from colgnn_core.collision.self_contact import GROW_DOUBLING, SELF_CLEARANCE, SelfContact
-from colgnn_core.collision.surface_validity import MAX_STRETCH, SurfaceValidity
+from colgnn_core.collision.surface_validity import MAX_STRETCH, SurfaceValidity, rigid_fit
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tools import make_tool
 
@@ -306,3 +306,53 @@ def test_self_clearance_threshold_is_kept_over_the_step(tool):
     stage, out, T0, T1 = corrected(rest, F, x1, tool, pose(0, 0, 0.05), pose(0, 0, 0.05))
     upper, lower = out.positions[n:, 2].min(), out.positions[:n, 2].max()
     assert upper - lower > SELF_CLEARANCE
+
+
+def turn_about_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rigid_fit_recovers_a_rigid_motion():
+    rest, _ = two_patches()
+    R = turn_about_z(0.7) @ np.array([[1.0, 0, 0], [0, 0.6, -0.8], [0, 0.8, 0.6]])
+    p = np.array([0.3, -0.1, 0.05])
+    ids = np.arange(len(rest))
+    got_R, got_p = rigid_fit(rest @ R.T + p, rest, ids)
+    np.testing.assert_allclose(got_R, R, atol=1e-12)
+    np.testing.assert_allclose(got_p, p, atol=1e-12)
+
+
+def test_hot_vertices_are_counted_from_the_object_s_rigid_motion_not_from_rest():
+    rest, F = two_patches()
+    stage = SelfContact(F, len(rest), rest)
+    x0 = rest @ turn_about_z(0.2).T + [0.05, 0.0, 0.01]
+    x1 = rest @ turn_about_z(0.3).T + [0.052, 0.0, 0.012]  # turned 0.1 rad and moved 2 mm: nothing deforms
+    assert stage.deviation(x0, x1)[0].max() < 1e-12 and stage.check(x0, x1).clean
+    # The same motion with the lower patch's middle pushed 12 mm up through the upper one: only the bump is hot.
+    bumped = bulge(rest) @ turn_about_z(0.3).T + [0.052, 0.0, 0.012]
+    chk = stage.check(x0, bumped)
+    n = len(rest) // 2
+    moved = np.linalg.norm(bulge(rest) - rest, axis=1) > stage.quiet
+    assert 0 < chk.hot <= int(moved.sum()) < n
+    assert chk.pairs > 0  # the pass-through is found
+
+
+def test_quiet_pairs_under_the_rigid_motion_are_still_checked():
+    """Two patches 2 mm apart carried 5 cm away in one step while the lower one rises 1.95 mm: every vertex stays
+    within ``quiet`` (2 mm here) of the fitted rigid motion, so only the rest-pair bound with the fit's deviations can
+    find the pair that comes within 50 um; the stage keeps it apart."""
+    rest, F = two_patches(gap=0.002)
+    n = len(rest) // 2
+    corr = CollisionCorrector(F, len(rest), make_tool("sphere", {"radius": 0.008}, "ci"), dhat=5e-4)
+    stage = SelfContact(F, len(rest), rest, quiet=0.002)
+    x1 = rest + [0.05, 0.0, 0.0]
+    x1[:n, 2] += 0.00195
+    dev, sigma = stage.deviation(rest, x1)
+    assert dev.max() < stage.quiet and sigma == pytest.approx(1.0)
+    chk = stage.check(rest, x1)
+    assert chk.hot == 0 and chk.pairs > 0
+    far = pose(0, 0, 0.5)
+    T = corr.tool.world_vertices(far)
+    out = stage.correct(corr, rest, x1, far, far, T, T)
+    assert out.positions[n:, 2].min() - out.positions[:n, 2].max() > SELF_CLEARANCE

@@ -14,10 +14,16 @@ against the tool, this stage makes it safe against the object itself. Input: the
   and the fallback is certified for both).
 
 Detection ("check"). Only near the deformed region: a surface vertex is *hot* when it is farther than ``quiet`` (m)
-from its rest position at t or t+1. A pair of primitives whose vertices are all quiet cannot come closer than
-their rest distance minus 2 quiet (every point of a primitive stays within ``quiet`` of its rest point all step, the
-straight motion being a convex combination), so such pairs are examined only if they are within 2 quiet +
-SELF_CLEARANCE at rest (a list built once). Pairs with a hot vertex come from swept boxes grown by SELF_CLEARANCE
+from where a rigid motion of the rest puts it, at t or t+1. The rigid motions A0 = (R0, p0) at t and A1 at t+1 are
+chosen per step: the identity, or the least-squares fit of the surface to the rest at each time, refitted once to
+the vertices that fit left quiet; whichever leaves fewer vertices hot (a pressed bunny tilts as a whole: half its
+surface is hot against the rest, a tenth against the fit). Every point of a quiet primitive then stays within
+``quiet`` of M(s) r + c(s) all step (the straight motion being a convex combination), with r its rest point and
+M(s) = (1-s) R0 + s R1, whose smallest singular value is cos(theta/2) for the turn theta between R0 and R1. So a pair
+of quiet primitives cannot come closer than cos(theta/2) x their rest distance minus 2 quiet: such pairs are examined
+only if within (2 quiet + SELF_CLEARANCE) / cos(MAX_FIT_TURN/2) at rest (a list built once), and of those only the
+ones whose bound, with each primitive's own deviation, falls to the threshold; a fit that turns more than
+``MAX_FIT_TURN`` within the step is not used. Pairs with a hot vertex come from swept boxes grown by SELF_CLEARANCE
 (the hot primitives against every primitive whose box meets the hot region's box): boxes farther apart than that
 cannot hold points closer than it. Every candidate gets the additive CCD of :mod:`.clearance` (conservative: a pair
 is passed only when its distance provably stays above the threshold), the object standing in for the tool.
@@ -89,7 +95,7 @@ from colgnn_core.collision.correction import CollisionCorrector
 from colgnn_core.collision.kernels import (grid_join, grid_self_join, point_triangle, point_triangle_distance,
                                            map_pairs, prim_boxes, prims_meeting_box, row3, segment_distance,
                                            segment_params, vertex_boxes)
-from colgnn_core.collision.surface_validity import SurfaceValidity
+from colgnn_core.collision.surface_validity import SurfaceValidity, rigid_fit
 from colgnn_core.errors import InputError
 
 __all__ = ["SELF_CLEARANCE", "SELF_RATIO", "SELF_TARGET", "SelfCheck", "SelfContact", "SelfResult",
@@ -99,6 +105,7 @@ SELF_CLEARANCE = 5e-5   # m: no two non-adjacent surface primitives come closer 
 SELF_RATIO = 0.4        # ... unless they started closer than SELF_CLEARANCE / SELF_RATIO: then this x d0
 SELF_TARGET = 1e-4      # m: the gap a self push aims for at the time the CCD found
 QUIET_FRACTION = 0.25   # quiet = this x the median rest edge: a vertex within it of rest is not "hot"
+MAX_FIT_TURN = 0.5      # rad: a rigid fit turning more than this within a step is not used (module docstring)
 MAX_ROUNDS = 6          # repair rounds (each followed by the tool pass) before the fallback
 FILL_ROUNDS = 2         # rounds in which invalid patches follow their neighbours; later: back to x0
 PUSH_ROUNDS = 3         # rounds in which self pairs are pushed apart; later: back to x0
@@ -185,13 +192,14 @@ class SelfContact:
             raise InputError(f"max_rounds must be >= 0, got {max_rounds}")
         self.max_rounds = int(max_rounds)
         self.S = self.surface.vertices
+        self.rest_surface = np.ascontiguousarray(self.rest[self.S])
         E = self.surface.edges
         lengths = np.linalg.norm(self.rest[E[:, 0]] - self.rest[E[:, 1]], axis=1)
         self.quiet = float(QUIET_FRACTION * np.median(lengths)) if quiet is None else float(quiet)
         self.validity = SurfaceValidity(self.surface.faces, self.rest)
         self.neighbours = _vertex_neighbours(E, self.n)
         warm_up_self_contact()
-        reach = 2.0 * self.quiet + SELF_CLEARANCE
+        reach = (2.0 * self.quiet + SELF_CLEARANCE) / np.cos(0.5 * MAX_FIT_TURN)
         every = np.zeros(self.n, dtype=np.bool_)
         every[self.S] = True
         vf, ee = _candidates(self.rest, self.rest, every, self.S, self.surface.faces, E, reach)
@@ -203,13 +211,34 @@ class SelfContact:
 
     # -- detection ------------------------------------------------------------------------------------------------
     def hot(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
-        """Bool [N]: surface vertices farther than ``quiet`` from rest at t or t+1."""
-        return self.deviation(x0, x1) > self.quiet
+        """Bool [N]: surface vertices farther than ``quiet`` from the step's rigid frames at t or t+1."""
+        return self.deviation(x0, x1)[0] > self.quiet
 
-    def deviation(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
-        """[N] m: each surface vertex's larger distance from rest at t and t+1 (0 off the surface)."""
-        return _deviation(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(x1, dtype=np.float64),
-                          self.rest, self.S, self.n)
+    def deviation(self, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, float]:
+        """([N] m, sigma): each surface vertex's larger distance at t and t+1 from where the step's rigid motions of
+        the rest put it (0 off the surface), and the smallest singular value cos(theta/2) of their blend (module
+        docstring: the identity, or the surface's rigid fit, whichever leaves fewer vertices hot)."""
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        x1 = np.ascontiguousarray(x1, dtype=np.float64)
+        eye, zero = np.eye(3), np.zeros(3)
+        best = (_deviation(x0, x1, self.rest, self.S, self.n, eye, zero, eye, zero), 1.0)
+        if not np.any(best[0] > self.quiet):
+            return best
+        ids, rest = self.S, self.rest_surface
+        for _ in range(2):  # the fit, then the fit to the vertices it left quiet
+            (R0, p0), (R1, p1) = rigid_fit(x0, rest, ids), rigid_fit(x1, rest, ids)
+            cos_turn = np.clip(0.5 * (np.trace(R0.T @ R1) - 1.0), -1.0, 1.0)
+            if np.arccos(cos_turn) > MAX_FIT_TURN:
+                break
+            dev = _deviation(x0, x1, self.rest, self.S, self.n, R0, p0, R1, p1)
+            sigma = float(np.sqrt(0.5 * (1.0 + cos_turn)))  # cos(theta/2)
+            if np.count_nonzero(dev > self.quiet) < np.count_nonzero(best[0] > self.quiet):
+                best = (dev, sigma)
+            ids = self.S[dev[self.S] <= self.quiet]
+            if len(ids) < 4:
+                break
+            rest = self.rest[ids]
+        return best
 
     def check(self, x0: np.ndarray, x1: np.ndarray, *, moving: np.ndarray | None = None) -> SelfCheck:
         """Self pairs of the straight step x0 -> x1 ([N,3] m) that may come closer than the threshold, and the
@@ -220,14 +249,14 @@ class SelfContact:
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
         x1 = np.ascontiguousarray(x1, dtype=np.float64)
         F, E = self.surface.faces, self.surface.edges
-        dev = self.deviation(x0, x1) if moving is None else None
+        dev, sigma = self.deviation(x0, x1) if moving is None else (None, 1.0)
         hot = dev > self.quiet if moving is None else moving
         vf, ee = _candidates(x0, x1, hot, self.S, F, E, SELF_CLEARANCE)
         if moving is None:
             vf = np.concatenate([vf, self.rest_vf[_rest_pairs_needed(self.rest_vf, self.rest_vf_d, dev, hot, F, E,
-                                                                     False, SELF_CLEARANCE)]])
+                                                                     False, SELF_CLEARANCE, sigma)]])
             ee = np.concatenate([ee, self.rest_ee[_rest_pairs_needed(self.rest_ee, self.rest_ee_d, dev, hot, F, E,
-                                                                     True, SELF_CLEARANCE)]])
+                                                                     True, SELF_CLEARANCE, sigma)]])
         else:
             vf = vf[~_all_hot(vf, F, E, hot, False)]
             ee = ee[~_all_hot(ee, F, E, hot, True)]
@@ -524,15 +553,15 @@ def _share(edges, a, b):
 
 
 @njit(cache=True)
-def _deviation(x0, x1, rest, S, n):
-    """[n]: max(|x0_v - rest_v|, |x1_v - rest_v|) for v in S, 0 elsewhere (m)."""
+def _deviation(x0, x1, rest, S, n, R0, p0, R1, p1):
+    """[n]: max(|x0_v - (R0 rest_v + p0)|, |x1_v - (R1 rest_v + p1)|) for v in S, 0 elsewhere (m)."""
     dev = np.zeros(n)
     for v in S:
         a = 0.0
         b = 0.0
         for k in range(3):
-            da = x0[v, k] - rest[v, k]
-            db = x1[v, k] - rest[v, k]
+            da = x0[v, k] - (R0[k, 0] * rest[v, 0] + R0[k, 1] * rest[v, 1] + R0[k, 2] * rest[v, 2] + p0[k])
+            db = x1[v, k] - (R1[k, 0] * rest[v, 0] + R1[k, 1] * rest[v, 1] + R1[k, 2] * rest[v, 2] + p1[k])
             a += da * da
             b += db * db
         dev[v] = np.sqrt(max(a, b))
@@ -616,10 +645,11 @@ def _close_pairs(X, vf, ee, faces, edges, reach) -> tuple:
 
 
 @njit(cache=True, parallel=True)
-def _rest_pairs_needed(pairs, d_rest, dev, hot, faces, edges, is_ee, clearance):
+def _rest_pairs_needed(pairs, d_rest, dev, hot, faces, edges, is_ee, clearance, sigma):
     """Bool [K]: rest-close pairs to examine this step. A pair with a hot vertex is examined with the hot primitives;
-    a quiet one only if its rest distance minus the largest deviation from rest of each primitive's vertices (``dev``
-    [N], m, over both ends: it bounds every point's deviation during the step) is not above ``clearance``."""
+    a quiet one only if ``sigma`` x its rest distance minus the largest deviation of each primitive's vertices
+    (``dev`` [N], m, from the step's rigid frames at both ends: it bounds every point's deviation during the step)
+    is not above ``clearance``."""
     keep = np.zeros(pairs.shape[0], dtype=np.bool_)
     for k in prange(pairs.shape[0]):
         if is_ee:
@@ -633,7 +663,7 @@ def _rest_pairs_needed(pairs, d_rest, dev, hot, faces, edges, is_ee, clearance):
             continue
         qa = max(dev[a[0]], dev[a[1]])
         qb = max(dev[b[0]], dev[b[1]], dev[b[2]])
-        keep[k] = d_rest[k] - qa - qb <= clearance
+        keep[k] = sigma * d_rest[k] - qa - qb <= clearance
     return keep
 
 
@@ -719,10 +749,10 @@ def warm_up_self_contact() -> None:
     s = Surface.from_faces(faces, 4)
     hot = np.ones(4, dtype=np.bool_)
     vf, ee = _candidates(X, X + 0.01, hot, s.vertices, faces, s.edges, 0.1)
-    _deviation(X, X + 0.01, X, s.vertices, 4)
+    _deviation(X, X + 0.01, X, s.vertices, 4, np.eye(3), np.zeros(3), np.eye(3), np.zeros(3))
     _pair_distances(X, vf, ee, faces, s.edges)
     for pairs, is_ee in ((vf, False), (ee, True)):
-        _rest_pairs_needed(pairs, np.zeros(len(pairs)), np.zeros(4), hot, faces, s.edges, is_ee, 0.0)
+        _rest_pairs_needed(pairs, np.zeros(len(pairs)), np.zeros(4), hot, faces, s.edges, is_ee, 0.0, 1.0)
     off, nb = _vertex_neighbours(s.edges, 4)
     _harmonic_fill(X.copy(), hot, off, nb, 2)
     _grow(hot, off, nb)

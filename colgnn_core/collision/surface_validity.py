@@ -29,7 +29,7 @@ from numba import njit, prange
 
 from colgnn_core.errors import InputError
 
-__all__ = ["MAX_STRETCH", "MIN_AREA_RATIO", "SurfaceValidity", "ValidityCounts", "best_rotation"]
+__all__ = ["MAX_STRETCH", "MIN_AREA_RATIO", "SurfaceValidity", "ValidityCounts", "best_rotation", "rigid_fit"]
 
 MAX_STRETCH = 3.0      # longest allowed edge / rest length (ground truth: at most 1.44)
 MIN_AREA_RATIO = 0.1   # smallest allowed area / rest area (ground truth: at least 0.83)
@@ -48,8 +48,8 @@ class ValidityCounts:
 
 @njit(cache=True)
 def _cross_covariance(X, rest, ids):
-    """sum_k (X_i - mean X)(rest_k - mean rest)^T [3,3] over the rows ``ids`` of X and the rows of ``rest`` (one
-    pass, no copies: the alignment runs on every check of a step)."""
+    """(sum_k (X_i - mean X)(rest_k - mean rest)^T [3,3], mean X [3], mean rest [3]) over the rows ``ids`` of X and
+    the rows of ``rest`` (one pass, no copies: the alignment runs on every check of a step)."""
     n = ids.shape[0]
     sx = np.zeros(3)
     sr = np.zeros(3)
@@ -64,7 +64,14 @@ def _cross_covariance(X, rest, ids):
     for a in range(3):
         for b in range(3):
             sxr[a, b] -= sx[a] * sr[b] / n
-    return sxr
+    return sxr, sx / n, sr / n
+
+
+def _kabsch(A: np.ndarray) -> np.ndarray:
+    """Q [3,3]: the rotation maximising trace(Q A) for a cross-covariance A = sum (x - mx)(r - mr)^T."""
+    U, _, Vt = np.linalg.svd(A)
+    d = 1.0 if np.linalg.det(U @ Vt) >= 0 else -1.0
+    return np.ascontiguousarray((U @ np.diag([1.0, 1.0, d]) @ Vt).T)
 
 
 def best_rotation(X: np.ndarray, rest: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
@@ -72,10 +79,16 @@ def best_rotation(X: np.ndarray, rest: np.ndarray, ids: np.ndarray | None = None
     all rows of X) onto rest [K,3]."""
     X = np.ascontiguousarray(X, dtype=np.float64)
     ids = np.arange(len(X)) if ids is None else np.ascontiguousarray(ids, dtype=np.int64)
-    A = _cross_covariance(X, np.ascontiguousarray(rest, dtype=np.float64), ids)
-    U, _, Vt = np.linalg.svd(A)
-    d = 1.0 if np.linalg.det(U @ Vt) >= 0 else -1.0
-    return np.ascontiguousarray((U @ np.diag([1.0, 1.0, d]) @ Vt).T)
+    return _kabsch(_cross_covariance(X, np.ascontiguousarray(rest, dtype=np.float64), ids)[0])
+
+
+def rigid_fit(X: np.ndarray, rest: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R [3,3], p [3] m): the best rigid motion (least squares) carrying rest [K,3] onto X[ids] [K,3]:
+    X[ids] ~ rest @ R.T + p."""
+    A, mx, mr = _cross_covariance(np.ascontiguousarray(X, dtype=np.float64),
+                                  np.ascontiguousarray(rest, dtype=np.float64), np.ascontiguousarray(ids))
+    R = np.ascontiguousarray(_kabsch(A).T)
+    return R, mx - R @ mr
 
 
 @njit(cache=True, parallel=True)
