@@ -111,7 +111,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             config.model = {**config.model, **args.model_options}
     result = train(args.scene, args.data, args.out, variant=args.variant, resume=args.resume, steps=args.steps,
                    seed=args.seed, threads=args.threads, config=config, resolution=args.resolution,
-                   time_budget_s=args.time_budget, progress=not args.quiet)
+                   time_budget_s=args.time_budget, progress=not args.quiet, init=args.init)
     print(f"{result.stopped}: step {result.step}/{result.steps} in {result.wall_s:.0f} s -> {result.checkpoint}")
     return 0
 
@@ -315,6 +315,9 @@ def _add_train(sub) -> None:
     p.add_argument("--out", required=True, help="checkpoint file (.pt), written atomically every N steps")
     p.add_argument("--variant", choices=("full", "baseline", "no-compact", "subspace"), default="full")
     p.add_argument("--resume", action="store_true", help="continue the run stored in --out")
+    p.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="fine-tune: start from this checkpoint's network (same scene; its size and settings) "
+                        "instead of random weights")
     p.add_argument("--steps", type=_positive, default=None, help="total training steps")
     p.add_argument("--graph", choices=("surface", "tet"), default=None,
                    help="graph nodes: surface vertices only, or every tet-mesh vertex (default: the scene's)")

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from colgnn_core.errors import InputError
+from colgnn_core.evaluation.model_card import read_card
 from colgnn_core.learn.checkpoint import read_checkpoint
 from colgnn_core.learn.data import FrameDataset, sample_at
 from colgnn_core.learn.graph import template_from_scene
@@ -131,6 +132,33 @@ def test_resume_continues_bit_for_bit_and_seed_fixes_the_run(tmp_path):
     with pytest.raises(InputError, match="variant"):
         train(fx.scene(), fx.dataset_dir(), tmp_path / "b.pt", variant="baseline", resume=True, progress=False,
               log_dir=False)
+
+
+def test_a_fine_tune_starts_from_its_checkpoint_and_records_it(tmp_path):
+    """``init``: the run starts from the checkpoint's weights (its loss, not a fresh network's), keeps its size,
+    records where it started (and the model card's command says so), and refuses a size or another scene."""
+    model = dict(fx.TINY_MODEL, order=0, quasi_static=True)
+    base = fx.tiny_config(steps=200, warmup_steps=20, log_every=40, lr_init=3e-3, lr_final=3e-4, model=model)
+    train(fx.scene(), fx.dataset_dir(), tmp_path / "base.pt", variant="baseline", seed=0, config=base,
+          progress=False, log_dir=False)
+    tune = fx.tiny_config(steps=40, warmup_steps=5, lr_init=1e-4, lr_final=1e-5, model={})
+    kw = dict(variant="baseline", seed=3, config=tune, progress=False, log_dir=False, init=tmp_path / "base.pt")
+    train(fx.scene(), fx.dataset_dir(), tmp_path / "start.pt", stop_after=tune.warmup_steps, **kw)
+    start, fresh = read_checkpoint(tmp_path / "start.pt"), read_checkpoint(tmp_path / "base.pt")
+    weights = [k for k in fresh["model"] if "acc_" not in k and "num_accumulations" not in k]
+    assert all(torch.equal(start["model"][k], fresh["model"][k]) for k in weights)  # no step taken yet
+    assert start["config"] == fresh["config"] and start["extra"]["init_from"] == str(tmp_path / "base.pt")
+    train(fx.scene(), fx.dataset_dir(), tmp_path / "tuned.pt", **kw)
+    scratch = fx.tiny_config(steps=40, warmup_steps=5, lr_init=1e-4, lr_final=1e-5, model=model)
+    train(fx.scene(), fx.dataset_dir(), tmp_path / "scratch.pt", variant="baseline", seed=3, config=scratch,
+          progress=False, log_dir=False)
+    assert _dataset_loss(tmp_path / "tuned.pt") < 0.5 * _dataset_loss(tmp_path / "scratch.pt")
+    card = read_card(tmp_path / "tuned.pt", tmp_path)
+    assert f"--init {tmp_path / 'base.pt'}" in card.command and "--model " not in card.command
+    with pytest.raises(InputError, match="--init takes"):
+        train(fx.scene(), fx.dataset_dir(), tmp_path / "x.pt", **{**kw, "config": scratch})
+    with pytest.raises(InputError, match="scene"):
+        train(load_scene("sphere_mat", "ci"), fx.dataset_dir(), tmp_path / "y.pt", **kw)
 
 
 def test_checkpoint_round_trip_and_wrong_scene_rejected(tmp_path):

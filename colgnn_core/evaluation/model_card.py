@@ -58,7 +58,9 @@ def read_card(path: Path, root: Path) -> ModelCard:
         defaults = ModelConfig().to_dict()
         size = "/".join(str(config[k]) for k in SIZE_KEYS)
         options = {k: v for k, v in config.items() if k not in NOT_OPTIONS and v != defaults.get(k)}
-        command = f"{base} --model {size}" + (f" --model-options '{json.dumps(options)}'" if options else "")
+        # a fine-tune takes its network's size and settings from the checkpoint it started from
+        command = (f"{base} --init {extra['init_from']}" if extra.get("init_from")
+                   else f"{base} --model {size}" + (f" --model-options '{json.dumps(options)}'" if options else ""))
         if extra.get("symmetry_order"):  # trained with the scene's symmetry turns (learn.symmetry)
             command += " --symmetry"
     files = extra.get("data_files")

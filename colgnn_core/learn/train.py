@@ -41,7 +41,8 @@ from colgnn_core.collision import CollisionDetector
 from colgnn_core.collision.kernels import use_kernel_threads
 from colgnn_core.errors import InputError
 from colgnn_core.io import ensure_writable_dir
-from colgnn_core.learn.checkpoint import CheckpointMeta, save_checkpoint, simulator_from_payload
+from colgnn_core.learn.checkpoint import (CheckpointMeta, check_compatible, read_checkpoint, save_checkpoint,
+                                         simulator_from_payload)
 from colgnn_core.learn.data import FrameDataset, read_manifest, sample_at
 from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.learn.losses import REDUCTIONS, kl_latent, loss_ccd, loss_q, xi_random
@@ -239,6 +240,7 @@ class _Model:
     sched: object
     start: int = 0            # steps done before this invocation
     wall_before: float = 0.0  # training wall time of the earlier invocations (s)
+    init_from: str | None = None  # the checkpoint a fine-tune started from (``train(init=...)``)
 
 
 def _fresh_model(scene, dataset: FrameDataset, config: TrainConfig | None, steps: int | None, seed: int) -> _Model:
@@ -274,7 +276,31 @@ def _resumed_model(scene, out_ckpt: Path, variant: str, steps: int | None) -> _M
     cfg.validate()
     opt, sched = _optimizer(sim, cfg)
     state.restore_optimizer(opt, sched)
-    return _Model(cfg, template, sim, opt, sched, state.step, float(state.extra.get("wall_s", 0.0)))
+    return _Model(cfg, template, sim, opt, sched, state.step, float(state.extra.get("wall_s", 0.0)),
+                  state.extra.get("init_from"))
+
+
+def _initialised_model(scene, init: Path, config: TrainConfig | None, steps: int | None) -> _Model:
+    """A fine-tune: the weights and normalizer statistics of the checkpoint ``init`` (same scene, mesh and dt; a
+    network, any variant), with a fresh optimizer and learning-rate schedule. The network's settings are the
+    checkpoint's (the config's ``model`` overrides must be empty); the statistics go on accumulating on the new data
+    (:mod:`.normalizer`)."""
+    payload = read_checkpoint(init)
+    meta = CheckpointMeta(**payload["meta"])
+    check_compatible(meta, scene.name, scene.object.fingerprint(), float(scene.dt), source=str(init))
+    if payload.get("kind", "gnn") != "gnn":
+        raise InputError(f"{init}: only a network checkpoint can start a fine-tune, not a {payload['kind']!r} model")
+    cfg = TrainConfig.from_dict((config or TrainConfig()).to_dict())
+    if cfg.model:
+        raise InputError("--init takes the network's settings from its checkpoint; drop --model, --model-options "
+                         "and --graph")
+    if steps is not None:
+        cfg.steps = int(steps)
+    cfg.validate()
+    mcfg = ModelConfig.from_dict(payload["config"])
+    template = template_from_scene(scene, surface_only=mcfg.surface_only, world_radius=mcfg.world_radius)
+    sim = simulator_from_payload(payload, template, source=str(init))
+    return _Model(cfg, template, sim, *_optimizer(sim, cfg), init_from=str(init))
 
 
 def _attach_prior(scene, dataset: FrameDataset, template, cfg: TrainConfig, kind: str, progress: bool) -> None:
@@ -316,12 +342,16 @@ class _Run:
 
 
 def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, steps: int | None, seed: int,
-           config: TrainConfig | None) -> _Run:
+           config: TrainConfig | None, init: Path | None = None) -> _Run:
     ensure_writable_dir(out_ckpt.parent if str(out_ckpt.parent) else Path("."))
     dist_ = _init_distributed()
     dataset = FrameDataset(scene, data_dir, "train")
-    model = (_resumed_model(scene, out_ckpt, variant, steps) if resume
-             else _fresh_model(scene, dataset, config, steps, seed))
+    if resume:
+        model = _resumed_model(scene, out_ckpt, variant, steps)
+    elif init is not None:
+        model = _initialised_model(scene, init, config, steps)
+    else:
+        model = _fresh_model(scene, dataset, config, steps, seed)
     model.sim.train()
     cfg, template = model.cfg, model.template
     # Crossings are also counted (without gradient) at logging steps of the baseline, for comparison.
@@ -335,6 +365,7 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
         if symmetry is None:
             raise InputError(f"{scene.name}: --symmetry needs a [symmetry] table in the scene (none declared)")
     extra = {"train_config": cfg.to_dict(), "seed": int(seed), "data_dir": str(data_dir),
+             **({"init_from": model.init_from} if model.init_from else {}),
              "data_files": [s.name for s in dataset.sequences], "world_size": dist_.world,
              "noise_std": float(model.sim.config.noise_std), "data_stats": data_stats(dataset, template),
              **domain_extra(dataset, seed, symmetry)}
@@ -498,7 +529,7 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
           resume: bool = False, steps: int | None = None, seed: int = 0, threads: int | None = None, *,
           config: TrainConfig | None = None, resolution: str | None = None, time_budget_s: float | None = None,
           stop_after: int | None = None, progress: bool = True, log_dir: str | os.PathLike | None | bool = None,
-          on_step=None) -> TrainResult:
+          on_step=None, init: str | os.PathLike | None = None) -> TrainResult:
     """Train a model on a dataset folder and write the checkpoint ``out_ckpt``.
 
     Args:
@@ -518,6 +549,8 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
         log_dir: TensorBoard folder (default ``<out_ckpt stem>.tb`` beside the checkpoint; False: none).
         on_step: called as ``on_step(step, total_steps)`` after every logged step (rank 0), e.g. by a pipeline's
             own progress display.
+        init: start from this checkpoint's weights and normalizers (a fine-tune; see :func:`_initialised_model`),
+            not from random weights; ignored on resume (the run stored in ``out_ckpt`` records it).
 
     Raises:
         InputError: unknown variant, bad data, a checkpoint of another scene/variant, unwritable output.
@@ -535,7 +568,10 @@ def train(scene, data_dir: str | os.PathLike, out_ckpt: str | os.PathLike, varia
     if variant == "subspace":
         return train_subspace(scene, data_dir, out_ckpt, resume=resume, steps=steps, seed=seed, progress=progress,
                               stop_after=stop_after)
-    run = _setup(scene, data_dir, out_ckpt, variant, resume, steps, seed, config)
+    if init is not None and variant == "subspace":
+        raise InputError("--init fine-tunes a network; the subspace variant has none")
+    run = _setup(scene, data_dir, out_ckpt, variant, resume, steps, seed, config,
+                 Path(init) if init is not None and not resume else None)
     log = _TrainLog(run, log_dir, progress)
     t0 = time.perf_counter()
     step, stopped = run.model.start, "done"
