@@ -52,7 +52,18 @@ certify rigidly with the tool (R x0 + p). Then, repeatedly, every pair and trian
 outside the region is checked (CCD, validity); the vertices of a failing one join the region with a ring around
 them (from the ``GROW_DOUBLING``-th round on, 2, 4, 8, ... rings: a torn step can need the region to spread across
 the object, and each round costs a check, so the rounds stay logarithmic in the object's size), and the tool
-certificate is redone. Safety (x0 self-clean and valid):
+certificate is redone.
+
+The soft border comes first (since session 23): a rigid region carried several millimetres with the tool tears
+every ring of triangles around it, so the growth above doubled out to the whole object (the bunny and the banana
+rode with the tool). Instead, ring k of the ``BLEND_RINGS`` rings around the region takes (1 - k / (BLEND_RINGS + 1))
+of its own rigid step with the tool, a ramp to the still surface; the tool certificate is redone with the region
+rigid; and the state counts only if the *full* check (the detection above, sound for any state, not the rigid
+region's shortcut below) finds no self pair and no invalid triangle but those already invalid in x0. Where it does,
+the failing pairs' and triangles' vertices join the region with a ring, up to ``SOFT_ROUNDS`` times; then the rigid
+growth below, whose safety argument follows. So the soft border's safety is that of any checked state: (I1) and the
+step property by the check, (I2) by the validity test, (I3) by the certificate. Safety of the rigid growth (x0
+self-clean and valid):
 
 * a pair with all four vertices outside the region does not move: its distance stays the x0 distance
   > SELF_RATIO x it;
@@ -91,7 +102,7 @@ from numba import njit, prange
 
 from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
-from colgnn_core.collision.correction import CollisionCorrector
+from colgnn_core.collision.correction import CollisionCorrector, rigid_step
 from colgnn_core.collision.kernels import (grid_join, grid_self_join, point_triangle, point_triangle_distance,
                                            map_pairs, prim_boxes, prims_meeting_box, row3, segment_distance,
                                            segment_params, vertex_boxes)
@@ -113,6 +124,8 @@ FILL_ITERATIONS = 30    # Jacobi sweeps of the harmonic fill
 MIN_PUSH_TIME = 0.05    # a push at t+1 is (target - d*) / max(t*, this)
 STATELESS_ROUND = max(FILL_ROUNDS, PUSH_ROUNDS)  # from this round on a round depends on its starting state alone
 GROW_DOUBLING = 3       # fallback rounds that grow the region by one ring; later rounds grow by 2, 4, 8, ... rings
+BLEND_RINGS = 6         # the fallback's soft border: rings of a ramp between the carried region and the still surface
+SOFT_ROUNDS = 4         # soft-border tries, the region grown by the failing pairs and triangles between them
 _NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
 
@@ -422,7 +435,12 @@ class SelfContact:
         base = x.copy()
         base[S] = x0[S]  # non-surface graph nodes keep their values: they take no part in contact
         region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c)
+        if give_way and self.carried(x0, base, region) > self.quiet:
+            return None
         kept = self.validity.invalid(x0)  # invalid before the step: not the region's doing (see _repair_kept)
+        soft = self._soft_border(corrector, x0, base, region, kept, pose0, pose1, T0, T1, c)
+        if soft is not None and not (give_way and self.carried(x0, soft[0], soft[1]) > self.quiet):
+            return *self._repair_kept(corrector, x0, soft[0], soft[1], pose0, pose1, T0, T1, clearance), 0
         for k in range(len(S) + 1):  # every round adds a vertex: at most |S| rounds (in practice a few)
             if give_way and self.carried(x0, base, region) > self.quiet:
                 return None
@@ -440,6 +458,44 @@ class SelfContact:
             grow = _grow_rings(grow, 1 if k < GROW_DOUBLING else 2 ** min(k - GROW_DOUBLING + 1, 30), *self.neighbours)
             region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c, region=region | grow)
         return *self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, clearance), k
+
+    def _soft_border(self, corrector: CollisionCorrector, x0, base, region, kept, pose0, pose1, T0, T1, c: float
+                     ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The fallback with a soft border instead of a rigid region grown across the object (module docstring):
+        (positions [N,3], rigid region), or None. Ring k of the ``BLEND_RINGS`` rings around the rigid region takes
+        (1 - k / (BLEND_RINGS + 1)) of its rigid step with the tool, a ramp to the still surface beyond; the tool
+        certificate is redone with the region rigid (a border vertex it cannot prove goes back to x0 or joins the
+        region); the result counts only if the full check finds no pair and no invalid triangle but those of
+        ``kept`` (bool [F], invalid in x0). Otherwise the failing pairs' and triangles' vertices, with a ring, join
+        the rigid region, up to ``SOFT_ROUNDS`` times. ``base`` [N,3]: x0 with ``region`` moved rigidly."""
+        F = self.surface.faces
+        R, p = rigid_step(pose0, pose1)
+        region, base = region.copy(), base.copy()  # the caller's state stays as it was if this gives up
+        for _ in range(SOFT_ROUNDS):
+            trial = base.copy()
+            inner = region
+            for ring in range(1, BLEND_RINGS + 1):  # ring k takes (1 - k/(BLEND_RINGS+1)) of its own rigid step
+                outer = _grow(inner, *self.neighbours)
+                new = outer & ~inner
+                if not new.any():
+                    break
+                w = 1.0 - ring / (BLEND_RINGS + 1.0)
+                trial[new] = x0[new] + w * (x0[new] @ R.T + p - x0[new])
+                inner = outer
+            if inner is region:
+                return None  # the region is the whole surface already
+            rigid = corrector.rigid_fallback(x0, trial, pose0, pose1, T0, T1, c, region=region)
+            chk = self.check(x0, trial)
+            bad = chk.invalid & ~kept
+            if not chk.pairs and not bad.any():
+                return trial, region | rigid
+            grow = np.zeros(self.n, dtype=np.bool_)
+            grow[F[bad].ravel()] = True
+            if chk.pairs:
+                grow[self.pair_vertices(chk)] = True
+            region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c,
+                                              region=rigid | _grow(grow, *self.neighbours))
+        return None
 
     def _repair_kept(self, corrector: CollisionCorrector, x0, base, region, pose0, pose1, T0, T1, clearance: bool
                      ) -> tuple[np.ndarray, np.ndarray]:
