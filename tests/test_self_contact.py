@@ -281,21 +281,10 @@ def test_a_fallback_region_that_must_spread_over_the_object_grows_in_logarithmic
     8, ... rings a round keep the rounds logarithmic, and the result is clean."""
     monkeypatch.setattr(SelfContact, "_soft_border", lambda self, *args: None)
     cells = 48
-    rest, F = two_patches(cells=cells)
-    n = len(rest) // 2
-    x1 = rest.copy()
-    x1[40 * (cells + 1) + 40, 2] = 0.009  # a spike of the lower patch through the upper one, far from the tool: a
-    # self pair, so there is no pair-free state to give way to and the fallback is published
-    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
-    stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: straight to the fallback
-    h = 0.006 + 0.008  # the sphere resting on the upper patch
-    p0, p1 = pose(0, 0, h + 2e-4), pose(0.004, 0, h - 5e-4)
-    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
-    out = stage.correct(corr, rest, corr.correct(rest, x1, p0, p1, T0, T1).positions, p0, p1, T0, T1)
-    assert out.fallback and out.region >= n  # the whole upper patch turned with the tool
+    stage, rest, F, out, T0, T1 = dragging_fallback_case(tool, cells)
+    assert out.fallback and out.region >= len(rest) // 2  # the whole upper patch turned with the tool
     assert 3 <= out.fallback_rounds <= GROW_DOUBLING + int(np.ceil(np.log2(cells))) + 1 < cells // 2
     assert_clean(stage, F, rest, out, tool, T0, T1)
-
 
 
 def test_the_repair_rounds_stop_at_a_fixed_point_with_the_outcome_of_running_them_all(tool, monkeypatch):
