@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 import sys
 from dataclasses import asdict
@@ -98,8 +99,11 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     config = None
-    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options)) or args.symmetry:
+    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options, args.lr)) \
+            or args.symmetry:
         config = TrainConfig(symmetry=args.symmetry)
+        if args.lr is not None:
+            config.lr_init, config.lr_final = args.lr
         if args.graph is not None:
             config.model = {**config.model, "surface_only": args.graph == "surface"}
         if args.ccd_form is not None:
@@ -298,6 +302,19 @@ def _add_generate(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+def _learning_rates(text: str) -> tuple[float, float]:
+    """``INIT[:FINAL]`` -> (lr_init, lr_final), both > 0; FINAL defaults to INIT / 100 (the default schedule's
+    ratio)."""
+    parts = text.split(":")
+    try:
+        rates = [float(v) for v in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected INIT or INIT:FINAL (numbers), got {text!r}") from None
+    if len(rates) not in (1, 2) or not all(math.isfinite(r) and r > 0 for r in rates):
+        raise argparse.ArgumentTypeError(f"expected INIT or INIT:FINAL, each a number > 0, got {text!r}")
+    return rates[0], rates[1] if len(rates) == 2 else rates[0] / 100.0
+
+
 def _json_object(text: str) -> dict:
     try:
         value = json.loads(text)
@@ -330,6 +347,9 @@ def _add_train(sub) -> None:
                         '"coarse_nodes": 32, "coarse_steps": 3}\'')
     p.add_argument("--ccd-form", choices=("max", "mean", "sum_squares"), default=None,
                    help="reduction of L_ccd (paper: max)")
+    p.add_argument("--lr", type=_learning_rates, default=None, metavar="INIT[:FINAL]",
+                   help="learning rate at the start and at the end of the exponential decay (default 1e-3:1e-5; "
+                        "FINAL defaults to INIT/100). A fine-tune (--init) usually wants a lower INIT")
     p.add_argument("--symmetry", action="store_true",
                    help="turn each sample by a random rotation of the scene's declared [symmetry] (knife_torus)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",

@@ -123,3 +123,22 @@ def test_train_model_options_reach_the_checkpoint(tmp_path, capsys):
     assert main(["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--out", str(tmp_path / "b.pt"),
                  "--steps", "2", "--quiet", "--model-options", '{"quasi_static": true, "order": 2}']) == 2
     assert "quasi_static needs order 0" in capsys.readouterr().err
+
+
+def test_train_learning_rates_reach_the_checkpoint(tmp_path, capsys):
+    """``--lr INIT[:FINAL]``: the run's schedule (FINAL defaults to INIT / 100); anything else is refused."""
+    from colgnn_core.learn.checkpoint import read_checkpoint
+    from tests.helpers import train_data as fx
+
+    base = ["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--steps", "2", "--quiet",
+            "--threads", "1", "--variant", "baseline", "--model", "8/1/1"]
+    for given, want in (("2e-4", (2e-4, 2e-6)), ("3e-4:1e-6", (3e-4, 1e-6))):
+        out = tmp_path / f"{given}.pt"
+        assert main(base + ["--out", str(out), "--lr", given]) == 0
+        cfg = read_checkpoint(out)["extra"]["train_config"]
+        assert (cfg["lr_init"], cfg["lr_final"]) == pytest.approx(want)
+    for bad in ("0", "1e-3:-1", "fast", "1:2:3"):
+        with pytest.raises(SystemExit):
+            main(base + ["--out", str(tmp_path / "bad.pt"), "--lr", bad])
+        assert "INIT" in capsys.readouterr().err
+    assert not (tmp_path / "bad.pt").exists()

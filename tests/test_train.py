@@ -155,6 +155,7 @@ def test_a_fine_tune_starts_from_its_checkpoint_and_records_it(tmp_path):
     assert _dataset_loss(tmp_path / "tuned.pt") < 0.5 * _dataset_loss(tmp_path / "scratch.pt")
     card = read_card(tmp_path / "tuned.pt", tmp_path)
     assert f"--init {tmp_path / 'base.pt'}" in card.command and "--model " not in card.command
+    assert card.command.endswith(" --lr 0.0001:1e-05")  # the tune's own rates, which `--lr` gives back
     with pytest.raises(InputError, match="--init takes"):
         train(fx.scene(), fx.dataset_dir(), tmp_path / "x.pt", **{**kw, "config": scratch})
     with pytest.raises(InputError, match="scene"):

@@ -16,6 +16,7 @@ from colgnn_core.evaluation.provenance import provenance_line
 from colgnn_core.io import write_generated_section
 from colgnn_core.learn.checkpoint import read_checkpoint
 from colgnn_core.learn.model import ModelConfig
+from colgnn_core.learn.train import TrainConfig
 
 SECTION = "models"  # the marker name of the generated block in the README
 SIZE_KEYS = ("latent", "message_passing_steps", "mlp_layers")
@@ -63,12 +64,23 @@ def read_card(path: Path, root: Path) -> ModelCard:
                    else f"{base} --model {size}" + (f" --model-options '{json.dumps(options)}'" if options else ""))
         if extra.get("symmetry_order"):  # trained with the scene's symmetry turns (learn.symmetry)
             command += " --symmetry"
+    rates = _learning_rates(extra.get("train_config") or {})
+    if rates:
+        command += f" --lr {rates}"
     files = extra.get("data_files")
     return ModelCard(file=str(path.relative_to(root)), kind=kind, scene=meta["scene"],
                      resolution=meta.get("resolution", "?"), variant=meta["variant"], size=size, options=options,
                      world_radius=float(config.get("world_radius", 0.0)), steps=steps, data=data,
                      sequences=len(files) if files else None, wall_s=extra.get("wall_s"),
                      megabytes=path.stat().st_size / 1e6, command=command)
+
+
+def _learning_rates(train_config: dict) -> str:
+    """``INIT:FINAL`` for ``colgnn train --lr`` when the run's rates differ from the defaults, else ''."""
+    default = TrainConfig()
+    init = train_config.get("lr_init", default.lr_init)
+    final = train_config.get("lr_final", default.lr_final)
+    return "" if (init, final) == (default.lr_init, default.lr_final) else f"{init:g}:{final:g}"
 
 
 def model_cards(models_dir: str | Path) -> list[ModelCard]:
