@@ -189,7 +189,7 @@ def test_the_self_contact_default_comes_from_the_scene_and_an_explicit_one_wins(
     value is refused by name."""
     import dataclasses
 
-    from colgnn_core.runtime.predictor import self_contact_default
+    from colgnn_core.runtime.predictor import correction_iterations, self_contact_default
     from colgnn_core.scenes import load_scene, scene_names
 
     assert {n: self_contact_default(load_scene(n, "ci")) for n in scene_names()} == {
@@ -200,6 +200,13 @@ def test_the_self_contact_default_comes_from_the_scene_and_an_explicit_one_wins(
     assert _pred(asking, self_contact=False).self_contact is None
     assert _pred(scene, self_contact=True).self_contact is not None
     assert _pred(asking, correction=False).self_contact is None  # the stage needs the tool pass
+    # a [correction.<resolution>] table wins at its resolution only (the bunny's ci test models tear: the stage is
+    # slow on them)
+    per_res = {"self_contact": False, "max_iterations": 12, "full": {"self_contact": True, "max_iterations": 20},
+               "ci": {"max_iterations": 14}}
+    for resolution, on, passes in (("ci", False, 14), ("full", True, 20)):
+        tuned = dataclasses.replace(scene, resolution=resolution, config={**scene.config, "correction": per_res})
+        assert (self_contact_default(tuned), correction_iterations(tuned)) == (on, passes)
     for bad in (1, "true", 0.0):
         wrong = dataclasses.replace(scene, config={**scene.config, "correction": {"self_contact": bad}})
         with pytest.raises(InputError, match="correction.self_contact must be true or false"):

@@ -56,10 +56,11 @@ from colgnn_core.runtime.stepper import RawStepper
 from colgnn_core.runtime.threads import ContentionGuard, auto_threads
 from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.hard_cases import press_pose
+from colgnn_core.scenes.scene import at_resolution
 from colgnn_core.scenes.trajectories import sample_poses, split_seeds
 
-__all__ = ["Predictor", "PredictorState", "StepResult", "correction_iterations", "self_contact_default",
-           "tool_step_limits", "DEFAULT_MAX_SUBSTEPS", "RECOMMENDED_REST_RELAXATION"]
+__all__ = ["Predictor", "PredictorState", "StepResult", "correction_iterations", "correction_table",
+           "self_contact_default", "tool_step_limits", "DEFAULT_MAX_SUBSTEPS", "RECOMMENDED_REST_RELAXATION"]
 
 DEFAULT_MAX_SUBSTEPS = 16
 WARM_UP_DEPTH = 0.3  # Predictor.warm_up: a fraction of the way from the surface to the deepest valid pose
@@ -173,19 +174,26 @@ def _family_limits(scene_name: str, resolution: str, seeds: int = 3, frames: int
 
 def correction_iterations(scene) -> int:
     """Correction passes before the fallback for ``scene``: its TOML's ``[correction] max_iterations``, else
-    DEFAULT_MAX_ITERATIONS. InputError when the value is not an integer >= 0."""
-    value = scene.config.get("correction", {}).get("max_iterations", DEFAULT_MAX_ITERATIONS)
+    DEFAULT_MAX_ITERATIONS (a ``[correction.<resolution>]`` table overrides it at that resolution). InputError when
+    the value is not an integer >= 0."""
+    value = correction_table(scene).get("max_iterations", DEFAULT_MAX_ITERATIONS)
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise InputError(f"{scene.name}: correction.max_iterations must be an integer >= 0, got {value!r}")
     return value
 
 
+def correction_table(scene) -> dict:
+    """The scene TOML's ``[correction]`` table at the scene's resolution: a ``[correction.full]`` or
+    ``[correction.ci]`` sub-table overrides the common keys there (:func:`~colgnn_core.scenes.scene.at_resolution`)."""
+    return at_resolution(scene.config.get("correction", {}), scene.resolution)
+
+
 def self_contact_default(scene) -> bool:
     """Whether the Predictor runs the self-contact stage for ``scene`` unless told otherwise: its TOML's
-    ``[correction] self_contact``, else False. A scene turns it on where its shipped model's steps are valid surfaces,
-    so that the stage stays cheap (it repairs rarely); on a model that tears, the stage costs tens of ms a step.
-    InputError when the value is not a boolean."""
-    value = scene.config.get("correction", {}).get("self_contact", False)
+    ``[correction] self_contact`` (or ``[correction.<resolution>]``'s), else False. A scene turns it on where its
+    shipped model's steps are valid surfaces, so that the stage stays cheap (it repairs rarely); on a model that
+    tears, the stage costs tens of ms a step. InputError when the value is not a boolean."""
+    value = correction_table(scene).get("self_contact", False)
     if not isinstance(value, bool):
         raise InputError(f"{scene.name}: correction.self_contact must be true or false, got {value!r}")
     return value
