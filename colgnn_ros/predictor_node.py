@@ -48,7 +48,7 @@ from visualization_msgs.msg import Marker
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import stats
 from colgnn_core.geometry.transforms import validate_pose
-from colgnn_core.runtime.models import shipped_checkpoint
+from colgnn_core.runtime.models import checkpoint_resolution, shipped_checkpoint
 from colgnn_core.runtime.predictor import REALTIME_INTERIOR, Predictor, self_contact_default
 from colgnn_core.runtime.threads import auto_threads
 from colgnn_core.scenes import load_scene, scene_names
@@ -97,8 +97,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "0 disables", range=(0.0, 0.99)),
     ParamSpec("self_contact", False, "also keep the object from passing through itself and its surface valid (no "
               "flipped or torn faces; docs/COLLISION_GUARANTEE.md). Default: the scene's [correction] self_contact "
-              "(on for sphere_mat, whose model's steps are valid surfaces, so the stage costs ~1 ms; off where it "
-              "would take the step past the 20 ms budget)", default_text="the scene's [correction] self_contact"),
+              "at the model's resolution (on for sphere_mat, cylinder_banana and cone_bunny's full model, whose steps "
+              "are mostly valid surfaces, so the stage costs 1-3 ms; off for knife_torus, where it ruins the deep "
+              "cuts)", default_text="the scene's [correction] self_contact"),
     ParamSpec("compile", True, "torch.compile the network at start-up (~1.8x faster GNN step; a few seconds with "
               "torch's disk cache, which make setup warms, 10-30 s without); falls back to eager with a warning"),
     ParamSpec("foxglove_port", 0, "live view: serve the mesh, the tool and the collision counts to the Foxglove app "
@@ -107,8 +108,17 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 )
 
 
-#: Parameters whose default is the scene's own setting (from the ``scene`` parameter, declared before them).
-SCENE_DEFAULTS = {"self_contact": lambda values: self_contact_default(load_scene(str(values["scene"]), "full"))}
+def _scene_self_contact(values: dict) -> bool:
+    """The scene's ``[correction] self_contact`` at the resolution of the model the node will run (a
+    ``[correction.full]`` table may turn the stage on for the full-resolution model only)."""
+    scene = str(values["scene"])
+    resolution = checkpoint_resolution(values["checkpoint"] or shipped_checkpoint(scene))
+    return self_contact_default(load_scene(scene, resolution))
+
+
+#: Parameters whose default is the scene's own setting (from the ``scene`` and ``checkpoint`` parameters, declared
+#: before them).
+SCENE_DEFAULTS = {"self_contact": _scene_self_contact}
 
 
 class PredictorNode(Node):

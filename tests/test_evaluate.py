@@ -169,7 +169,7 @@ def test_frontier_points_table_and_plot(tmp_path, capsys):
 
 
 def test_the_self_contact_stage_follows_the_scene_unless_asked(tmp_path):
-    """cone_bunny leaves the self-contact stage off (its TOML); --self-contact runs it in every corrected rollout,
+    """cone_bunny leaves the self-contact stage off at ci (its TOML); --self-contact runs it in every corrected rollout,
     and the report says which was measured."""
     args = ["evaluate", "--scene", fx.SCENE, "--checkpoint", str(fx.trained_checkpoint("full")),
             "--data", str(fx.dataset_dir()), "--no-exact", "--max-sequences", "1", "--quiet"]

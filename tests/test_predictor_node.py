@@ -100,19 +100,23 @@ def test_parameters_have_descriptors_and_dt_comes_from_the_checkpoint(ros, check
         assert n._timer.timer_period_ns == round(n.dt * 1e9)
         assert n.predictor.correction and n.predictor.max_substeps == 16
         assert n.predictor.rest_relaxation == RECOMMENDED_REST_RELAXATION == n.get_parameter("rest_relaxation").value
-        assert n.get_parameter("self_contact").value is False and n.predictor.self_contact is None  # cone_bunny's
+        assert n.get_parameter("self_contact").value is False and n.predictor.self_contact is None  # cone_bunny's at ci
     finally:
         n.destroy_node()
 
 
-def test_self_contact_defaults_to_the_scene_s_setting_and_an_override_wins(ros):
+def test_self_contact_defaults_to_the_scene_s_setting_and_an_override_wins(ros, checkpoint):
     """sphere_mat's TOML turns the self-contact stage on: the declared parameter says so (what runs is what
-    `ros2 param get` shows), and self_contact:=false turns it off."""
+    `ros2 param get` shows), and self_contact:=false turns it off. cone_bunny's turns it on for its full-resolution
+    model only ([correction.full]): a ci checkpoint runs without it."""
     from colgnn_ros.common import format_help
 
     ctx, _, _ = ros
-    for extra, expected in (({}, True), ({"self_contact": False}, False)):
-        values = dict(scene="sphere_mat", threads=1, compile=False, **extra)
+    bunny = {"scene": "cone_bunny"}
+    for extra, expected in (({}, True), ({"self_contact": False}, False),
+                            (bunny, True), ({**bunny, "checkpoint": checkpoint}, False)):
+        values = dict(scene="sphere_mat", threads=1, compile=False)
+        values.update(extra)
         n = PredictorNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
         try:
             assert n.get_parameter("self_contact").value is expected

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from colgnn_core.errors import InputError
-from colgnn_core.learn.checkpoint import LoadedCheckpoint
+from colgnn_core.learn.checkpoint import LoadedCheckpoint, read_checkpoint
 from colgnn_core.learn.registry import load_checkpoint
 from colgnn_core.scenes import is_custom, scene_file, scene_names
 
@@ -39,6 +39,12 @@ def shipped_checkpoint(scene_name: str) -> Path:
     if not path.is_file():
         raise InputError(f"no shipped model for scene {scene_name!r} ({path}); pass a checkpoint")
     return path
+
+
+def checkpoint_resolution(path: str | os.PathLike) -> str:
+    """The scene resolution ('ci' or 'full') the checkpoint at ``path`` was trained at (InputError, naming the file,
+    when it is missing or unreadable)."""
+    return str(read_checkpoint(path)["meta"].get("resolution", "full"))
 
 
 def load_model(checkpoint_or_scene, scene=None) -> LoadedCheckpoint:
