@@ -59,6 +59,16 @@ def _positive(text: str) -> int:
     return value
 
 
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
 def cmd_scenes(args: argparse.Namespace) -> int:
     rows = [load_scene(name, args.resolution).to_json() for name in scene_names()]
     if args.json:
@@ -99,9 +109,11 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     config = None
-    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options, args.lr)) \
-            or args.symmetry:
+    if any(v is not None for v in (args.ccd_form, args.model, args.graph, args.model_options, args.lr,
+                                   args.validity_weight)) or args.symmetry:
         config = TrainConfig(symmetry=args.symmetry)
+        if args.validity_weight is not None:
+            config.w_valid = args.validity_weight
         if args.lr is not None:
             config.lr_init, config.lr_final = args.lr
         if args.graph is not None:
@@ -352,6 +364,9 @@ def _add_train(sub) -> None:
                         "FINAL defaults to INIT/100). A fine-tune (--init) usually wants a lower INIT")
     p.add_argument("--symmetry", action="store_true",
                    help="turn each sample by a random rotation of the scene's declared [symmetry] (knife_torus)")
+    p.add_argument("--validity-weight", type=_non_negative, default=None, metavar="W",
+                   help="weight of L_valid: each predicted surface triangle within 84 degrees of flipping against its "
+                        "rest orientation costs (0.1 - cos) x W (default 0: off)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="stop (with a checkpoint) after this long")
     p.add_argument("--resolution", choices=("ci", "full"), default=None, help="default: from the dataset manifest")

@@ -142,3 +142,23 @@ def test_train_learning_rates_reach_the_checkpoint(tmp_path, capsys):
             main(base + ["--out", str(tmp_path / "bad.pt"), "--lr", bad])
         assert "INIT" in capsys.readouterr().err
     assert not (tmp_path / "bad.pt").exists()
+
+
+def test_train_validity_weight_reaches_the_checkpoint_and_its_command(tmp_path, capsys):
+    """``--validity-weight W``: L_valid in the run's loss (logged) and in the model card's rebuilt command."""
+    from colgnn_core.evaluation.model_card import read_card
+    from colgnn_core.learn.checkpoint import read_checkpoint
+    from tests.helpers import train_data as fx
+
+    out = tmp_path / "valid.pt"
+    base = ["train", "--scene", fx.SCENE, "--data", str(fx.dataset_dir()), "--steps", "3", "--quiet",
+            "--threads", "1", "--variant", "baseline", "--model", "8/1/1"]
+    assert main(base + ["--out", str(out), "--validity-weight", "5"]) == 0
+    extra = read_checkpoint(out)["extra"]
+    assert extra["train_config"]["w_valid"] == 5.0
+    assert read_card(out, tmp_path).command.endswith(" --validity-weight 5")
+    for bad in ("-1", "inf", "x"):
+        with pytest.raises(SystemExit):
+            main(base + ["--out", str(tmp_path / "bad.pt"), "--validity-weight", bad])
+        assert "--validity-weight" in capsys.readouterr().err
+    assert not (tmp_path / "bad.pt").exists()

@@ -102,3 +102,44 @@ def test_xi_random_zero_and_zero_gradient_away_from_the_tool():
         loss.backward()
         assert torch.count_nonzero(pts.grad) == 0
         pts.grad = None
+
+
+def _tet_surface():
+    X = torch.tensor(OBJ_REST, dtype=torch.float64)
+    faces = torch.tensor(OBJ_FACES)
+    return X, faces
+
+
+def test_flip_hinge_by_hand():
+    """L_valid is 0 at rest and under a rigid turn (aligned), and (min_cos - cos) for a tilted or flipped face."""
+    from colgnn_core.learn.losses import SurfaceRest, flip_hinge, unit_normals
+
+    X, faces = _tet_surface()
+    rest_n, _ = unit_normals(X, faces)
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float(flip_hinge(X, faces, rest_n, eye, 0.1)) == 0.0
+    # the apex pushed up through the base to z = 0.019: faces 1-3 flip; the base face (0) keeps its normal
+    Y = X.clone()
+    Y[3, 2] = 0.019
+    n, _ = unit_normals(Y, faces)
+    cos = (n * rest_n).sum(1)
+    assert float(cos[0]) == pytest.approx(1.0) and bool((cos[1:] < 0).all())
+    assert float(flip_hinge(Y, faces, rest_n, eye, 0.1)) == pytest.approx(float((0.1 - cos[1:]).sum()))
+    # face 1 (z = 0.001 apex, base edge along x): cos by hand from its two edges
+    a, b, c = OBJ_REST[0], OBJ_REST[1], np.array([0.003, 0.003, 0.019])
+    m = np.cross(b - a, c - a)
+    a0, b0, c0 = OBJ_REST[0], OBJ_REST[1], OBJ_REST[3]
+    m0 = np.cross(b0 - a0, c0 - a0)
+    assert float(cos[1]) == pytest.approx(m @ m0 / np.linalg.norm(m) / np.linalg.norm(m0))
+    # the gradient pushes the apex back down (it lowers the loss)
+    Y.requires_grad_(True)
+    flip_hinge(Y, faces, rest_n, eye, 0.1).backward()
+    assert float(Y.grad[3, 2]) > 0.0
+    # a rigid turn of the whole tet costs nothing once aligned by the target's rotation (SurfaceRest.loss)
+    t = 2.0
+    R = torch.tensor([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    turned = X @ R.T + 0.05
+    rest = SurfaceRest.of(OBJ_FACES, OBJ_REST)
+    assert float(flip_hinge(turned, faces, rest_n, eye, 0.1)) > 0.0  # unaligned, the turn looks like flips
+    assert float(rest.loss(turned, turned, 0.1)) == pytest.approx(0.0, abs=1e-12)
+    assert float(rest.loss(Y.detach() @ R.T, turned, 0.1)) == pytest.approx(float((0.1 - cos[1:]).sum()))

@@ -67,6 +67,9 @@ def read_card(path: Path, root: Path) -> ModelCard:
     rates = _learning_rates(extra.get("train_config") or {})
     if rates:
         command += f" --lr {rates}"
+    w_valid = (extra.get("train_config") or {}).get("w_valid", 0.0)
+    if w_valid:
+        command += f" --validity-weight {w_valid:g}"
     files = extra.get("data_files")
     return ModelCard(file=str(path.relative_to(root)), kind=kind, scene=meta["scene"],
                      resolution=meta.get("resolution", "?"), variant=meta["variant"], size=size, options=options,

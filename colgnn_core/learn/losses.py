@@ -1,15 +1,22 @@
-"""Training losses: the data term L_q, the latent KL term, L_ccd and ξ_Random.
+"""Training losses: the data term L_q, the latent KL term, L_ccd, ξ_Random and L_valid.
 
 L_GNN = L_q + L_ccd + L_compact (paper eq. 2), L_ccd = ξ_VF + ξ_EE (eq. 4),
 L_compact = ξ_Random + L_KL (eq. 9). The collision depths come from the
 collision module (filter + narrow phase, evaluated differentiably in torch);
-ξ_Random uses the tool's analytic SDF. Weights and ramps are training settings
+ξ_Random uses the tool's analytic SDF. L_valid (ours, not the paper's) penalises surface triangles whose predicted
+normal turns too far from their rest normal (:func:`flip_hinge`), the flips that
+:mod:`colgnn_core.collision.surface_validity` counts. Weights and ramps are training settings
 (:class:`colgnn_core.learn.train.TrainConfig`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
 import torch
+
+from colgnn_core.collision.surface_validity import best_rotation
 
 
 def loss_q(pred_norm: torch.Tensor, target_norm: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -127,3 +134,59 @@ def xi_random(tool, x_random: torch.Tensor, pose_next, threshold: float, form: s
     if form == "mean":
         v = v[v > 0]  # empty when nothing violates: reduce_depths gives 0 with a zero gradient
     return reduce_depths(v, form, scale, num_nodes=x_random.shape[0])
+
+
+def unit_normals(X: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(unit normals [F,3], areas x 2 [F]) of the triangles ``faces`` [F,3] (int64) of positions X [N,3] (m)."""
+    a, b, c = X[faces[:, 0]], X[faces[:, 1]], X[faces[:, 2]]
+    n = torch.linalg.cross(b - a, c - a)
+    area2 = n.norm(dim=1)
+    return n / area2.clamp_min(torch.finfo(X.dtype).tiny)[:, None], area2
+
+
+def flip_hinge(x_pred: torch.Tensor, faces: torch.Tensor, rest_normals: torch.Tensor, rotation: torch.Tensor,
+               min_cos: float) -> torch.Tensor:
+    """L_valid: sum over triangles of ``max(min_cos - cos, 0)``, cos between a triangle's predicted normal, turned
+    into the rest frame by ``rotation``, and its rest normal. A flipped triangle (cos <= 0, the validity test)
+    costs at least ``min_cos``; one within arccos(min_cos) of its rest orientation costs nothing.
+
+    Args:
+        x_pred: [N,3] predicted positions at t+1 (m), differentiable.
+        faces: [F,3] int64 surface triangles indexing x_pred (outward).
+        rest_normals: [F,3] their unit rest normals.
+        rotation: [3,3] the best rotation of the *target* surface onto the rest
+            (:func:`~colgnn_core.collision.surface_validity.best_rotation`, no gradient): the frame the object
+            rests in, whatever it rolls to, as the validity test aligns it.
+        min_cos: cosine below which a triangle costs (the IPC truth stays above 0.19; 0.1 leaves it free).
+
+    A sum, not a mean: a few flipped triangles among thousands must count against L_q's per-node mean.
+    """
+    n, _ = unit_normals(x_pred, faces)
+    cos = (n @ rotation.T * rest_normals).sum(dim=1)
+    return torch.relu(min_cos - cos).sum()
+
+
+@dataclass(frozen=True)
+class SurfaceRest:
+    """The rest surface that L_valid measures against: faces [F,3] (graph ids, int64 tensor), their unit rest
+    normals [F,3], and the surface's graph ids [S] with their rest positions [S,3] (numpy, m) for the alignment.
+    The rest is the settled one (the truth's frame 0), as in the validity test."""
+
+    faces: torch.Tensor
+    normals: torch.Tensor
+    ids: np.ndarray
+    rest: np.ndarray
+
+    @classmethod
+    def of(cls, surface_faces: np.ndarray, rest: np.ndarray) -> "SurfaceRest":
+        """From the graph's surface faces [F,3] and its settled rest [N,3] (m)."""
+        faces = torch.as_tensor(np.asarray(surface_faces, dtype=np.int64))
+        rest = torch.as_tensor(np.asarray(rest, dtype=np.float64))
+        ids = np.unique(np.asarray(surface_faces))
+        return cls(faces, unit_normals(rest, faces)[0], ids, rest.numpy()[ids])
+
+    def loss(self, x_pred: torch.Tensor, x_target: torch.Tensor, min_cos: float) -> torch.Tensor:
+        """L_valid of the prediction ``x_pred`` [N,3], in the frame that aligns the target [N,3] with the rest."""
+        target = x_target.detach().numpy()[self.ids]
+        q = torch.as_tensor(best_rotation(target, self.rest), dtype=x_pred.dtype)
+        return flip_hinge(x_pred, self.faces, self.normals.to(x_pred.dtype), q, min_cos)

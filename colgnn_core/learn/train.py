@@ -45,7 +45,7 @@ from colgnn_core.learn.checkpoint import (CheckpointMeta, check_compatible, read
                                          simulator_from_payload)
 from colgnn_core.learn.data import FrameDataset, read_manifest, sample_at
 from colgnn_core.learn.graph import template_from_scene
-from colgnn_core.learn.losses import REDUCTIONS, kl_latent, loss_ccd, loss_q, xi_random
+from colgnn_core.learn.losses import REDUCTIONS, SurfaceRest, kl_latent, loss_ccd, loss_q, xi_random
 from colgnn_core.learn.model import ModelConfig, Simulator
 from colgnn_core.learn.subspace import train_subspace
 from colgnn_core.learn.symmetry import NodeSymmetry, node_symmetry
@@ -78,6 +78,8 @@ class TrainConfig:
     w_ccd: float = 1.0
     w_random: float = 1.0
     w_kl: float = 0.01
+    w_valid: float = 0.0              # L_valid (losses.flip_hinge): surface triangles turned from their rest normal
+    valid_cos: float = 0.1            # ... cost below this cosine (the IPC truth stays above 0.19)
     ccd_form: str = "max"             # 'max' (paper) | 'mean' | 'sum_squares' (see losses.reduce_depths)
     compact_form: str = "max"
     compact_threshold: float | None = None  # Δ (m) of ξ_Random; None = the scene's dhat
@@ -113,6 +115,8 @@ class TrainConfig:
                 raise InputError(f"{name} must be one of {', '.join(REDUCTIONS)}, got {getattr(self, name)!r}")
         if not 0 <= self.ramp_begin <= self.ramp_end:
             raise InputError("need 0 <= ramp_begin <= ramp_end")
+        if not self.w_valid >= 0 or not -1.0 < self.valid_cos < 1.0:
+            raise InputError(f"need w_valid >= 0 and -1 < valid_cos < 1 (got {self.w_valid}, {self.valid_cos})")
         return self
 
 
@@ -120,7 +124,7 @@ def variant_weights(variant: str, cfg: TrainConfig) -> dict[str, float]:
     """The loss weights of a variant (before ramping)."""
     if variant not in GNN_VARIANTS:
         raise InputError(f"unknown variant {variant!r}; valid: {', '.join(VARIANTS)}")
-    w = {"q": cfg.w_q, "ccd": cfg.w_ccd, "random": cfg.w_random, "kl": cfg.w_kl}
+    w = {"q": cfg.w_q, "ccd": cfg.w_ccd, "random": cfg.w_random, "kl": cfg.w_kl, "valid": cfg.w_valid}
     if variant in ("baseline", "no-compact"):
         w["random"] = w["kl"] = 0.0
     if variant == "baseline":
@@ -199,7 +203,7 @@ def _all_reduce_step(sim: Simulator, before: list[torch.Tensor], scalars: torch.
 
 
 # ---------------------------------------------------------------------------------------------------- setup
-LOSS_NAMES = ("loss", "L_q", "L_ccd", "xi_vf", "xi_ee", "xi_random", "L_kl", "n_vf", "n_ee")
+LOSS_NAMES = ("loss", "L_q", "L_ccd", "xi_vf", "xi_ee", "xi_random", "L_kl", "L_valid", "n_vf", "n_ee")
 
 
 def _resolve_scene(scene, data_dir: Path, resolution: str | None):
@@ -303,6 +307,11 @@ def _initialised_model(scene, init: Path, config: TrainConfig | None, steps: int
     return _Model(cfg, template, sim, *_optimizer(sim, cfg), init_from=str(init))
 
 
+def _surface_rest(dataset: FrameDataset, template) -> SurfaceRest:
+    """L_valid's rest: the graph's surface at the settled rest, the first training sequence's frame 0."""
+    return SurfaceRest.of(template.surface_faces, dataset.sequences[0].object_positions[0][template.object_nodes])
+
+
 def _attach_prior(scene, dataset: FrameDataset, template, cfg: TrainConfig, kind: str, progress: bool) -> None:
     """Give every training sample the ``kind`` physics prior (sim.prior), along each sequence from its frame 0."""
     if cfg.symmetry:
@@ -331,6 +340,7 @@ class _Run:
     n_free: int
     symmetry: NodeSymmetry | None = None  # cfg.symmetry: the scene's turns that each sample is augmented by
     extra: dict = field(default_factory=dict)  # saved with every checkpoint
+    validity: SurfaceRest | None = None  # cfg.w_valid > 0: what L_valid compares the prediction with
 
     @property
     def cfg(self) -> TrainConfig:
@@ -374,7 +384,9 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
     return _Run(scene, variant, seed, out_ckpt, dataset, dist_, model, detector, variant_weights(variant, cfg),
                 delta=float(cfg.compact_threshold if cfg.compact_threshold is not None else scene.dhat),
                 opt_total=max(cfg.steps - cfg.warmup_steps, 1), free=~template.pinned,
-                n_free=int((~template.pinned).sum()), symmetry=symmetry, extra=extra)
+                n_free=int((~template.pinned).sum()), symmetry=symmetry, extra=extra,
+                validity=_surface_rest(dataset, template) if cfg.w_valid > 0 else None)
+
 
 
 # ---------------------------------------------------------------------------------------------------- one step
@@ -400,6 +412,7 @@ def _losses(run: _Run, step: int, log_now: bool) -> _StepLosses:
     warm = step < cfg.warmup_steps
     r = 0.0 if warm else ramp(step - cfg.warmup_steps, run.opt_total, cfg.ramp_begin, cfg.ramp_end)
     w_ccd, w_rand, w_kl = run.weights["ccd"] * r, run.weights["random"] * r, run.weights["kl"] * r
+    w_valid = run.weights["valid"] * r
     before = _snapshot(sim) if run.dist.world > 1 else None
 
     out = sim(frame, x_next, generator=gen, noise=True, accumulate=True, random_latent=w_rand > 0)
@@ -428,6 +441,13 @@ def _losses(run: _Run, step: int, log_now: bool) -> _StepLosses:
         total = total + w_rand * xr + w_kl * kl
         terms.update(xi_random=xr.detach().double(), L_kl=kl.detach().double())
         computed |= {"xi_random", "L_kl"}
+    if run.validity is not None and (w_valid > 0 or log_now):
+        with torch.set_grad_enabled(w_valid > 0):
+            lv = run.validity.loss(out.x_next_pred, x_next, cfg.valid_cos)
+        if w_valid > 0:
+            total = total + w_valid * lv
+        terms["L_valid"] = lv.detach().double()
+        computed.add("L_valid")
     terms["loss"] = total.detach().double()
     return _StepLosses(total, terms, computed, warm, r, before)
 
