@@ -66,9 +66,11 @@ def test_sample_order_is_seeded_and_ranks_are_disjoint():
 
 def test_variants_and_ramp():
     cfg = TrainConfig()
-    assert variant_weights("baseline", cfg) == {"q": 1.0, "ccd": 0.0, "random": 0.0, "kl": 0.0}
+    assert variant_weights("baseline", cfg) == {"q": 1.0, "ccd": 0.0, "random": 0.0, "kl": 0.0, "valid": 0.0}
     assert variant_weights("no-compact", cfg)["random"] == 0.0 and variant_weights("no-compact", cfg)["ccd"] > 0
-    assert min(variant_weights("full", cfg).values()) > 0
+    assert min(v for k, v in variant_weights("full", cfg).items() if k != "valid") > 0
+    # L_valid is not the paper's: off unless asked, in every variant alike
+    assert {variant_weights(v, TrainConfig(w_valid=2.0))["valid"] for v in ("full", "baseline", "no-compact")} == {2.0}
     with pytest.raises(InputError):
         variant_weights("bogus", cfg)
     assert [ramp(s, 100, 0.1, 0.3) for s in (0, 9, 20, 30, 99)] == [0.0, 0.0, 0.5, 1.0, 1.0]
