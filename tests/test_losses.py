@@ -115,13 +115,13 @@ def test_flip_hinge_by_hand():
     from colgnn_core.learn.losses import SurfaceRest, flip_hinge, unit_normals
 
     X, faces = _tet_surface()
-    rest_n, _ = unit_normals(X, faces)
+    rest_n = unit_normals(X, faces)
     eye = torch.eye(3, dtype=torch.float64)
     assert float(flip_hinge(X, faces, rest_n, eye, 0.1)) == 0.0
     # the apex pushed up through the base to z = 0.019: faces 1-3 flip; the base face (0) keeps its normal
     Y = X.clone()
     Y[3, 2] = 0.019
-    n, _ = unit_normals(Y, faces)
+    n = unit_normals(Y, faces)
     cos = (n * rest_n).sum(1)
     assert float(cos[0]) == pytest.approx(1.0) and bool((cos[1:] < 0).all())
     assert float(flip_hinge(Y, faces, rest_n, eye, 0.1)) == pytest.approx(float((0.1 - cos[1:]).sum()))

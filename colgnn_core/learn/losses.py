@@ -136,12 +136,11 @@ def xi_random(tool, x_random: torch.Tensor, pose_next, threshold: float, form: s
     return reduce_depths(v, form, scale, num_nodes=x_random.shape[0])
 
 
-def unit_normals(X: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(unit normals [F,3], areas x 2 [F]) of the triangles ``faces`` [F,3] (int64) of positions X [N,3] (m)."""
+def unit_normals(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Unit normals [F,3] of the triangles ``faces`` [F,3] (int64) of positions X [N,3] (m)."""
     a, b, c = X[faces[:, 0]], X[faces[:, 1]], X[faces[:, 2]]
     n = torch.linalg.cross(b - a, c - a)
-    area2 = n.norm(dim=1)
-    return n / area2.clamp_min(torch.finfo(X.dtype).tiny)[:, None], area2
+    return n / n.norm(dim=1).clamp_min(torch.finfo(X.dtype).tiny)[:, None]
 
 
 def flip_hinge(x_pred: torch.Tensor, faces: torch.Tensor, rest_normals: torch.Tensor, rotation: torch.Tensor,
@@ -161,7 +160,7 @@ def flip_hinge(x_pred: torch.Tensor, faces: torch.Tensor, rest_normals: torch.Te
 
     A sum, not a mean: a few flipped triangles among thousands must count against L_q's per-node mean.
     """
-    n, _ = unit_normals(x_pred, faces)
+    n = unit_normals(x_pred, faces)
     cos = (n @ rotation.T * rest_normals).sum(dim=1)
     return torch.relu(min_cos - cos).sum()
 
@@ -183,7 +182,7 @@ class SurfaceRest:
         faces = torch.as_tensor(np.asarray(surface_faces, dtype=np.int64))
         rest = torch.as_tensor(np.asarray(rest, dtype=np.float64))
         ids = np.unique(np.asarray(surface_faces))
-        return cls(faces, unit_normals(rest, faces)[0], ids, rest.numpy()[ids])
+        return cls(faces, unit_normals(rest, faces), ids, rest.numpy()[ids])
 
     def loss(self, x_pred: torch.Tensor, x_target: torch.Tensor, min_cos: float) -> torch.Tensor:
         """L_valid of the prediction ``x_pred`` [N,3], in the frame that aligns the target [N,3] with the rest."""
