@@ -4,6 +4,7 @@ input, m in the project)."""
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 __all__ = ["ray_faces"]
 
@@ -11,16 +12,35 @@ __all__ = ["ray_faces"]
 def ray_faces(tri: np.ndarray, origin: np.ndarray, direction: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Moeller-Trumbore against every triangle ``tri`` [F,3,3]: (hit [F] bool, ray parameter t [F], barycentric
-    weights [F,3]) for the ray origin + t direction, t > 0."""
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    h = np.cross(direction, e2)
-    a = np.einsum("fi,fi->f", e1, h)
-    ok = np.abs(a) > 1e-18
-    f = 1.0 / np.where(ok, a, 1.0)
-    s = origin - tri[:, 0]
-    u = f * np.einsum("fi,fi->f", s, h)
-    q = np.cross(s, e1)
-    v = f * (q @ direction)
-    t = f * np.einsum("fi,fi->f", e2, q)
-    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-    return hit, t, np.stack([1.0 - u - v, u, v], axis=1)
+    weights [F,3]) for the ray origin + t direction, t > 0.
+
+    Compiled, one triangle at a time: the tip prior casts two rays at the bunny's 6,020 faces every step, which the
+    array form did in about 1 ms a ray."""
+    tri = np.ascontiguousarray(tri, dtype=np.float64)
+    o = np.ascontiguousarray(origin, dtype=np.float64).reshape(3)
+    d = np.ascontiguousarray(direction, dtype=np.float64).reshape(3)
+    return _ray_faces(tri, o, d)
+
+
+@njit(cache=True)
+def _ray_faces(tri: np.ndarray, origin: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n = tri.shape[0]
+    hit = np.zeros(n, dtype=np.bool_)
+    t = np.empty(n)
+    bary = np.empty((n, 3))
+    for f in range(n):
+        ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
+        e1x, e1y, e1z = tri[f, 1, 0] - ax, tri[f, 1, 1] - ay, tri[f, 1, 2] - az
+        e2x, e2y, e2z = tri[f, 2, 0] - ax, tri[f, 2, 1] - ay, tri[f, 2, 2] - az
+        hx, hy, hz = d[1] * e2z - d[2] * e2y, d[2] * e2x - d[0] * e2z, d[0] * e2y - d[1] * e2x   # d x e2
+        a = e1x * hx + e1y * hy + e1z * hz
+        ok = abs(a) > 1e-18
+        inv = 1.0 / a if ok else 1.0
+        sx, sy, sz = origin[0] - ax, origin[1] - ay, origin[2] - az
+        u = inv * (sx * hx + sy * hy + sz * hz)
+        qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x   # s x e1
+        v = inv * (qx * d[0] + qy * d[1] + qz * d[2])
+        t[f] = inv * (e2x * qx + e2y * qy + e2z * qz)
+        hit[f] = ok and u >= 0 and v >= 0 and u + v <= 1 and t[f] > 0
+        bary[f, 0], bary[f, 1], bary[f, 2] = 1.0 - u - v, u, v
+    return hit, t, bary

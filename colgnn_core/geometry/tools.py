@@ -15,9 +15,11 @@ the origin so a trajectory drives the point that touches the object):
 The SDFs are exact Euclidean distances of the ideal shapes (Inigo Quilez's
 formulas for the capped cylinder and the capped cone; an exact convex-polygon
 distance extruded along x for the blade), negative inside. The same formula code
-runs on numpy arrays and on torch tensors, so ``sdf_torch`` is differentiable and
-equal to ``sdf`` to rounding; ``sdf_grad`` uses closed-form numpy gradients
-(about 0.2-1 ms for 5k points). Meshes are inscribed tessellations (vertices on
+runs on numpy arrays and on torch tensors: ``sdf_torch`` is differentiable. The
+numpy methods ``sdf``, ``sdf_local`` and ``sdf_grad`` (closed-form unit gradients)
+run the same formulas compiled, point by point (:mod:`colgnn_core.geometry.sdf_kernels`:
+a few microseconds a call, where the array code spent 40-350), equal to
+``sdf_torch`` to rounding. Meshes are inscribed tessellations (vertices on
 the ideal surface), watertight, faces outward.
 """
 
@@ -30,7 +32,8 @@ import numpy as np
 
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tetmesh import check_closed_surface, surface_edges, surface_volume
-from colgnn_core.geometry.transforms import inverse_transform_points, quat_to_matrix, transform_points
+from colgnn_core.geometry.sdf_kernels import SHAPE_IDS, kernel_params, sdf_world
+from colgnn_core.geometry.transforms import quat_to_matrix, transform_points
 
 TOOL_SHAPES = ("sphere", "cylinder", "cone", "blade")
 RESOLUTIONS = ("full", "ci")
@@ -182,103 +185,6 @@ def sdf_blade(p, length: float, height: float, thickness: float, bevel: float):
     return _round_box_2d(d2, _abs(p[:, 0]) - 0.5 * length)
 
 
-# --------------------------------------------------------------------------------------
-# Analytic gradients (numpy): the unit direction of steepest increase, exact where the
-# SDF is differentiable. At kinks (medial axis) one of the one-sided gradients is used.
-# --------------------------------------------------------------------------------------
-def _unit(*c):
-    n = np.sqrt(sum(x * x for x in c))
-    ok = n > 1e-300
-    return [np.where(ok, x / np.where(ok, n, 1.0), 0.0) for x in c], ok
-
-
-def _radial(p):
-    """Unit radial direction (x, y) about the z axis; +x on the axis."""
-    (rx, ry), ok = _unit(p[:, 0], p[:, 1])
-    return np.where(ok, rx, 1.0), np.where(ok, ry, 0.0)
-
-
-def _sign(x):
-    return np.where(x < 0, -1.0, 1.0)
-
-
-def _grad_round_box_2d(dx, dy):
-    """Gradient (gx, gy) of _round_box_2d w.r.t. its two excess arguments."""
-    outside = (dx > 0) & (dy > 0)
-    (ux, uy), _ = _unit(np.maximum(dx, 0), np.maximum(dy, 0))
-    gx = np.where(outside, ux, np.where(dx >= dy, 1.0, 0.0))
-    gy = np.where(outside, uy, np.where(dx >= dy, 0.0, 1.0))
-    return gx, gy
-
-
-def _grad_sphere(p, radius):
-    (gx, gy, gz), ok = _unit(p[:, 0], p[:, 1], p[:, 2])
-    return np.stack([gx, gy, np.where(ok, gz, 1.0)], axis=1)
-
-
-def _grad_cylinder(p, radius, height):
-    q = np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2)
-    gq, gz = _grad_round_box_2d(q - radius, np.abs(p[:, 2]) - 0.5 * height)
-    rx, ry = _radial(p)
-    return np.stack([gq * rx, gq * ry, gz * _sign(p[:, 2])], axis=1)
-
-
-def _grad_cone(p, radius, height, tip_radius=0.0):
-    hh = 0.5 * height
-    r1, r2 = tip_radius, radius
-    qx = np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2)
-    qy = p[:, 2] - hh
-    cax = qx - np.minimum(qx, np.where(qy < 0, r1, r2))
-    cay = np.abs(qy) - hh
-    k2x, k2y = r2 - r1, 2.0 * hh
-    t = np.clip(((r2 - qx) * k2x + (hh - qy) * k2y) / (k2x * k2x + k2y * k2y), 0.0, 1.0)
-    cbx = qx - r2 + k2x * t
-    cby = qy - hh + k2y * t
-    s = np.where((cbx < 0) & (cay < 0), -1.0, 1.0)
-    use_a = cax * cax + cay * cay < cbx * cbx + cby * cby
-    # Offsets from the closest point (the cap offset is in |qy|: unfold its sign).
-    vx = np.where(use_a, cax, cbx)
-    vy = np.where(use_a, cay * _sign(qy), cby)
-    (gx2, gy2), ok = _unit(vx, vy)
-    gx2, gy2 = s * gx2, np.where(ok, s * gy2, -1.0)
-    rx, ry = _radial(p)
-    return np.stack([gx2 * rx, gx2 * ry, gy2], axis=1)
-
-
-def _grad_blade(p, length, height, thickness, bevel):
-    u, v = np.abs(p[:, 1]), p[:, 2]
-    d2, (l_bevel, l_flat, l_spine, s1, s2, s3, h, b, nlen) = _blade_section_sdf(u, v, height, thickness, bevel)
-    # Inside: normal of the nearest (largest) edge line. Outside: away from the nearest segment.
-    lines = np.stack([l_bevel, l_flat, l_spine])
-    normals = np.array([[b / nlen, -h / nlen], [1.0, 0.0], [0.0, 1.0]])
-    gin = normals[np.argmax(lines, axis=0)]
-    segs = np.stack([s1[0], s2[0], s3[0]])
-    k = np.argmin(segs, axis=0)
-    du = np.choose(k, [s1[1], s2[1], s3[1]])
-    dv = np.choose(k, [s1[2], s2[2], s3[2]])
-    (gu, gv), ok = _unit(du, dv)
-    gu = np.where(ok, gu, gin[:, 0])
-    gv = np.where(ok, gv, gin[:, 1])
-    inside = lines.max(axis=0) <= 0
-    gu = np.where(inside, gin[:, 0], gu)
-    gv = np.where(inside, gin[:, 1], gv)
-    g_sec, g_x = _grad_round_box_2d(d2, np.abs(p[:, 0]) - 0.5 * length)
-    return np.stack([g_x * _sign(p[:, 0]), g_sec * gu * _sign(p[:, 1]), g_sec * gv], axis=1)
-
-
-def tool_sdf_grad_local(shape: str, params: dict[str, float], p: np.ndarray) -> np.ndarray:
-    """Unit gradient [N,3] of the SDF of ``shape`` at tool-frame points p [N,3] (numpy)."""
-    if shape == "sphere":
-        return _grad_sphere(p, params["radius"])
-    if shape == "cylinder":
-        return _grad_cylinder(p, params["radius"], params["height"])
-    if shape == "cone":
-        return _grad_cone(p, params["radius"], params["height"], params.get("tip_radius", 0.0))
-    if shape == "blade":
-        return _grad_blade(p, params["length"], params["height"], params["thickness"], params["bevel"])
-    raise InputError(f"unknown tool shape {shape!r}; valid: {', '.join(TOOL_SHAPES)}")
-
-
 def tool_sdf_local(shape: str, params: dict[str, float], p):
     """SDF [N] of tool ``shape`` at tool-frame points p [N,3] (numpy or torch)."""
     if shape == "sphere":
@@ -401,6 +307,15 @@ _MESH_DENSITY = {
 }
 
 
+_ORIGIN = np.zeros(3)
+_IDENTITY = np.eye(3)
+
+
+def _points(p: np.ndarray) -> np.ndarray:
+    """Points as a C-contiguous float64 [N,3] array (what the compiled SDF takes)."""
+    return np.ascontiguousarray(np.asarray(p, dtype=np.float64).reshape(-1, 3))
+
+
 @dataclass
 class Tool:
     """A rigid tool: analytic SDF + surface mesh, both in the tool frame.
@@ -429,30 +344,27 @@ class Tool:
             a = np.ascontiguousarray(getattr(self, name), dtype=np.float64 if name == "vertices" else np.int64)
             a.setflags(write=False)
             setattr(self, name, a)
+        self._kernel = (SHAPE_IDS[self.shape], kernel_params(self.shape, self.params))  # for sdf_world
 
     # ---- SDF ---------------------------------------------------------------------------
     def sdf_local(self, p: np.ndarray) -> np.ndarray:
         """Signed distance [N] (m, < 0 inside) of tool-frame points p [N,3]."""
-        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
-        return tool_sdf_local(self.shape, self.params, p)
+        return sdf_world(_points(p), _ORIGIN, _IDENTITY, *self._kernel, False)[0]
 
     def sdf(self, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Signed distance [N] (m) of world points [N,3] to the tool at ``pose`` [7]."""
-        return self.sdf_local(inverse_transform_points(np.asarray(points, dtype=np.float64).reshape(-1, 3),
-                                                       np.asarray(pose, dtype=np.float64)))
+        pose = np.asarray(pose, dtype=np.float64)
+        return sdf_world(_points(points), pose[:3].copy(), quat_to_matrix(pose[3:]), *self._kernel, False)[0]
 
     def sdf_grad(self, points: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(d [N], unit outward gradient [N,3] in world) at world points [N,3].
 
-        Analytic (numpy). At kinks of the SDF (sphere centre, cylinder axis, the
+        Analytic. At kinks of the SDF (sphere centre, cylinder axis, the
         knife's mid-plane, ...) a one-sided gradient is returned; it is always
         unit length.
         """
         pose = np.asarray(pose, dtype=np.float64)
-        local = inverse_transform_points(np.asarray(points, dtype=np.float64).reshape(-1, 3), pose)
-        d = tool_sdf_local(self.shape, self.params, local)
-        g = tool_sdf_grad_local(self.shape, self.params, local)
-        return d, g @ quat_to_matrix(pose[3:]).T
+        return sdf_world(_points(points), pose[:3].copy(), quat_to_matrix(pose[3:]), *self._kernel, True)
 
     def sdf_torch(self, points, pose):
         """Signed distance [N] of world points tensor [N,3] at pose tensor [7]; differentiable.
