@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from colgnn_core.runtime.threads import (MAX_INTERVAL_S, QUIET_SAMPLES, STALL_FRACTION, ContentionGuard,
-                                         auto_threads, cpu_stall_us, other_runnable_tasks)
+                                         auto_threads, cpu_stall_us, fastest_thread_count, other_runnable_tasks)
 from tests.helpers import train_data as fx
 from tests.helpers.correction_cases import make_model
 
@@ -180,3 +180,52 @@ def test_predictor_steps_its_kernels_on_the_guards_count():
         assert numba.get_num_threads() == counts[-1]
     assert counts == [2, 2, 2, 1, 1]  # 0.9 of an interval stalled trips the smoothed level at once, and the second
     # sample of another process's runnable task confirms it a step later
+
+
+@pytest.mark.parametrize("ms_one, ms_two, drift, expected", [
+    (7.5, 9.9, 0.0, 1),    # session 27's sphere_mat network: 1 thread clearly faster
+    (9.0, 9.2, 0.0, 2),    # within the margin: keep the request
+    (10.0, 6.0, 0.0, 2),   # the parallel pool pays off
+    (7.5, 9.9, 0.4, 1),    # the machine slows by 40% a call: alternating rounds still see 1 thread faster
+])
+def test_fastest_thread_count_times_both_counts_alternately(ms_one, ms_two, drift, expected):
+    """A fake clock whose call time depends on the thread count set (and on a drift of the machine's speed)."""
+    state = {"threads": 2, "t": 0.0, "calls": 0, "sets": []}
+
+    def set_threads(n):
+        state["threads"] = n
+        state["sets"].append(n)
+
+    def run():
+        state["calls"] += 1
+        state["t"] += 1e-3 * (ms_one if state["threads"] == 1 else ms_two) * (1 + drift * state["calls"] / 30)
+
+    got = fastest_thread_count(run, 2, set_threads, clock=lambda: state["t"], rounds=3, calls=5)
+    assert got == expected
+    assert state["calls"] == 30 and state["sets"] == [2, 1, 2, 1, 2, 1, 2]  # alternating, the request restored
+    assert fastest_thread_count(run, 1, set_threads) == 1 and state["calls"] == 30  # nothing to choose: no timing
+
+
+def test_compiled_predictor_times_its_network_threads_and_gives_the_same_steps():
+    """A compiled Predictor asked for 2 threads runs its network on 1 or 2 (timed at warm-up), leaves the process
+    at 2 after every step, and steps as it does with the network forced to 2 threads (float32 rounding)."""
+    import torch
+
+    from colgnn_core.evaluation.measure import family_poses
+    from colgnn_core.runtime.predictor import Predictor
+
+    scene = fx.scene()
+    p = Predictor.from_checkpoint(str(fx.trained_checkpoint("full")), threads=2, compile=True)
+    assert p.compiled and p.net.network_threads in (1, 2)
+    poses = family_poses(scene, 6)
+    p.reset(tool_pose=poses[0])
+    picked = []
+    for pose in poses[1:]:
+        picked.append(p.step(pose).positions)
+        assert torch.get_num_threads() == 2
+    p.reset(tool_pose=poses[0])
+    p.net.network_threads = 1 if p.net.network_threads == 2 else 2  # the other count
+    scale = scene.bbox_diagonal()
+    for pose, a in zip(poses[1:], picked):
+        assert np.abs(p.step(pose).positions - a).max() < 1e-5 * scale
+        assert torch.get_num_threads() == 2

@@ -103,6 +103,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "fallbacks": timed["fallbacks"],
         "out_of_domain_steps": timed["out_of_domain"],
         "threads": int(torch.get_num_threads()),
+        # torch threads of the network itself: 1 where the compiled network was faster on 1 at warm-up
+        "network_threads": int(predictor.net.network_threads or torch.get_num_threads()),
         # steps whose collision kernels ran on one thread: other processes held the cores (ContentionGuard)
         "kernel_threads_reduced_steps": int(predictor.kernel_guard.reduced_steps),
         "compiled": bool(predictor.compiled),
@@ -119,9 +121,10 @@ def format_bench(r: dict) -> str:
     rows = [("total", r["total_ms"]), ("graph", r["graph_ms"]), ("gnn", r["gnn_ms"]),
             ("correction", r["correction_ms"]),
             ("self contact", r["self_contact_ms"]), ("IPC solver", r["ipc_ms"])]
+    net = f" (network on {r['network_threads']})" if r.get("network_threads", r["threads"]) != r["threads"] else ""
     lines = [f"{r['scene']} ({r['resolution']}): {r['vertices']} vertices, {r['edges']} surface edges, "
              f"{r['faces']} faces; {r['frames'] - 1} steps, {r['threads']} "
-             f"threads{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
+             f"threads{net}{', compiled' if r.get('compiled') else ''}, load {r['load_average_1min']:.1f}",
              f"{'stage':<12}{'median ms':>11}{'p95 ms':>10}"]
     lines += [f"{name:<12}{s['median']:>11.2f}{s['p95']:>10.2f}" for name, s in rows]
     e = r["rollout_rmse"]

@@ -50,6 +50,9 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
     settings = (f"{first['frames'] - 1} steps of each scene's family trajectory, {first['threads']} torch thread(s), "
                 f"{'compiled' if first.get('compiled') else 'eager'} network, correction "
                 f"{'on' if first['correction'] else 'off'}, the self-contact stage where its column gives a time")
+    fewer = [f"`{r['scene']}`" for r in results if r.get("network_threads", r["threads"]) < r["threads"]]
+    if fewer:  # the Predictor times its compiled network on 1 thread against the request when it warms up
+        settings += f"; the network itself on 1 thread, faster there at warm-up, on {', '.join(fewer)}"
     header = ("| scene | surface V / E / F | step median (p95) | graph / GNN / correction (median) | self-contact "
               "stage, median (p95) | IPC solver (median) | speedup | crossings before → after correction | relative "
               "displacement error | load |")

@@ -53,7 +53,7 @@ from colgnn_core.learn.core_model import EdgeSet
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.models import model_and_scene, output_limits, settled_rest
 from colgnn_core.runtime.stepper import RawStepper
-from colgnn_core.runtime.threads import ContentionGuard, auto_threads
+from colgnn_core.runtime.threads import ContentionGuard, auto_threads, fastest_thread_count
 from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.hard_cases import press_pose
 from colgnn_core.scenes.scene import at_resolution
@@ -246,7 +246,8 @@ class Predictor:
         threads: torch intra-op threads (set process-wide), and the collision kernels' numba threads (set per
             stepping thread, :func:`~colgnn_core.collision.kernels.use_kernel_threads`). The kernels drop to one
             thread while other processes hold the cores (:class:`~colgnn_core.runtime.threads.ContentionGuard`;
-            ``StepResult.kernel_threads``).
+            ``StepResult.kernel_threads``). A compiled network runs on 1 thread instead where it was faster there
+            when the Predictor was built (timed at warm-up; ``net.network_threads``).
         max_iterations: correction passes before the safe fallback; default the scene's
             ``[correction] max_iterations`` (:func:`correction_iterations`).
         step_limits: (max translation m, max rotation rad) per model step; default from the
@@ -339,16 +340,26 @@ class Predictor:
     @torch.inference_mode()
     def _warm_up_network(self) -> None:
         """Call the network on the rest graph with 0, 1 and 2 world-edge pairs: every shape class the
-        compiled network can meet (torch specialises sizes 0 and 1; 2 and up share one kernel)."""
+        compiled network can meet (torch specialises sizes 0 and 1; 2 and up share one kernel). Then time it on 1
+        thread against ``threads`` and keep the faster count for the network (``net.network_threads``;
+        :func:`~colgnn_core.runtime.threads.fastest_thread_count`)."""
+        graph = None
+        for pairs in (0, 1, 2):
+            graph = self._rest_graph(pairs)
+            self.model.network(graph)
+        self.net.network_threads = fastest_thread_count(lambda: self.model.network(graph), self.threads,
+                                                        torch.set_num_threads)
+
+    def _rest_graph(self, pairs: int):
+        """The graph at the current (rest) state with ``pairs`` world-edge pairs between node 0 and tool node 0."""
         s = self.net.state
         g = self.model.build_graph(Frame(s.x_t, s.x_t, s.tool_t, s.tool_t, s.pose, torch.zeros_like(s.x_t)))
         n = g.num_object_nodes
-        for pairs in (0, 1, 2):
-            send = torch.tensor([n] * pairs + [0] * pairs, dtype=torch.int64)
-            recv = torch.tensor([0] * pairs + [n] * pairs, dtype=torch.int64)
-            feats = torch.zeros((2 * pairs, g.world.features.shape[1]), dtype=g.world.features.dtype)
-            # replace(): keep every other part of the graph (a coarse level's edges, for one)
-            self.model.network(replace(g, world=EdgeSet(feats, send, recv)))
+        send = torch.tensor([n] * pairs + [0] * pairs, dtype=torch.int64)
+        recv = torch.tensor([0] * pairs + [n] * pairs, dtype=torch.int64)
+        feats = torch.zeros((2 * pairs, g.world.features.shape[1]), dtype=g.world.features.dtype)
+        # replace(): keep every other part of the graph (a coarse level's edges, for one)
+        return replace(g, world=EdgeSet(feats, send, recv))
 
     def warm_up(self, depth: float = WARM_UP_DEPTH) -> float:
         """Press ``depth`` of the way from the surface to the deepest valid pose at the scene's target in single

@@ -93,6 +93,8 @@ class RawStepper:
         self._physics = physics_prior(kind, scene, self.rest_mesh, self.template.object_nodes) if kind else None
         self._contact_next: TipContact | None = None  # the prior's state after the last proposal, kept by commit
         self.clamped = 0  # nodes capped in the last step
+        # torch threads while the network runs (None: the process's count); the Predictor times it at warm-up
+        self.network_threads: int | None = None
         self.state: StepperState | None = None
 
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
@@ -113,7 +115,7 @@ class RawStepper:
             graph = self.model.build_graph(frame)
             self.world_edges = int(graph.world.senders.shape[0])
             t1 = time.perf_counter()
-            pred_norm, _ = self.model.network(graph)
+            pred_norm, _ = self.network(graph)
             x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev, frame.prior)
         else:  # models without the graph pieces (the subspace baseline)
             self.world_edges = None
@@ -122,6 +124,18 @@ class RawStepper:
         t2 = time.perf_counter()
         self.last_ms = {"graph": 1e3 * (t1 - t0), "gnn": 1e3 * (t2 - t1)}
         return self._capped(x_next)
+
+    def network(self, graph) -> tuple[torch.Tensor, torch.Tensor]:
+        """The model's network on ``graph`` (``Simulator.network``), on ``network_threads`` torch threads where
+        that is set; the process's count is restored after."""
+        n, before = self.network_threads, torch.get_num_threads()
+        if n is None or n == before:
+            return self.model.network(graph)
+        torch.set_num_threads(n)
+        try:
+            return self.model.network(graph)
+        finally:
+            torch.set_num_threads(before)
 
     def _prior(self, pose_next: np.ndarray) -> torch.Tensor | None:
         """The physics prior's displacement [N,3] at ``pose_next`` for a model with one (else None); the prior's

@@ -13,9 +13,10 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
+from statistics import median
 
 __all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us",
-           "other_runnable_tasks"]
+           "fastest_thread_count", "other_runnable_tasks"]
 
 QUIET_SAMPLES = 10     # uncontended calls in a row before the kernels get their threads back (0.4 s at 25 Hz)
 STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
@@ -35,6 +36,35 @@ def auto_threads(cpu_count: int | None = None) -> int:
     """
     n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
     return 1 if n <= 4 else min(4, n // 2)
+
+
+def fastest_thread_count(run: Callable[[], object], requested: int, set_threads: Callable[[int], object],
+                         clock: Callable[[], float] = time.perf_counter, rounds: int = 3, calls: int = 5,
+                         margin: float = 0.05) -> int:
+    """1 or ``requested``: the thread count at which ``run`` is faster here and now, timed alternately.
+
+    ``set_threads(n)`` sets the count ``run`` uses; it is left at ``requested``. ``rounds`` x ``calls`` timed calls
+    per count, the counts alternating round by round so that a drift of the machine's speed hits both; 1 wins only
+    when its median is more than ``margin`` below that of ``requested`` (ties keep the request).
+
+    Why: a small network's parallel regions can cost more than they save. On the 2-core AMD machine of session 27 the
+    compiled network of every shipped model was as fast or faster on 1 torch thread as on 2 (``sphere_mat`` 7.5
+    against 9.9 ms), while the collision kernels gain from 2 (docs/FIDELITY.md, session 27).
+    """
+    if requested <= 1:
+        return 1
+    times: dict[int, list[float]] = {requested: [], 1: []}
+    try:
+        for _ in range(rounds):
+            for n, samples in times.items():
+                set_threads(n)
+                for _ in range(calls):
+                    t = clock()
+                    run()
+                    samples.append(clock() - t)
+    finally:
+        set_threads(requested)
+    return 1 if median(times[1]) < (1.0 - margin) * median(times[requested]) else requested
 
 
 def cpu_stall_us(path: str = "/proc/pressure/cpu") -> int | None:
