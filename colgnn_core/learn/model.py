@@ -534,7 +534,8 @@ class Simulator(nn.Module):
         return self.training_outputs(frame, x_next, **kwargs)
 
 
-COMPILED_VARIANTS_LIMIT = 256  # compiled variants of the network per process (~3 per compiled Simulator)
+COMPILED_VARIANTS_LIMIT = 256  # compiled variants of the network per process (3 world-edge classes x 1-2 thread counts
+# per compiled Simulator)
 
 
 class _CompiledOrEager:
@@ -544,8 +545,8 @@ class _CompiledOrEager:
         import torch._dynamo  # lazy: the compiler stack loads only when a network is compiled
 
         # Every Simulator's bound core_outputs shares one code object, and dynamo caps the compiled variants of a
-        # code object (8 by default; each network needs ~3): past it, later networks in the same process silently
-        # ran eagerly (~1.8x slower), which inflated timings of processes that compile many models.
+        # code object (8 by default; each network needs 3 a thread count): past it, later networks in the same
+        # process silently ran eagerly (~1.8x slower), which inflated timings of processes that compile many models.
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, COMPILED_VARIANTS_LIMIT)
         torch._dynamo.config.accumulated_recompile_limit = max(
             torch._dynamo.config.accumulated_recompile_limit, 4 * COMPILED_VARIANTS_LIMIT)

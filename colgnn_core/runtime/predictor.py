@@ -340,14 +340,17 @@ class Predictor:
     @torch.inference_mode()
     def _warm_up_network(self) -> None:
         """Call the network on the rest graph with 0, 1 and 2 world-edge pairs: every shape class the
-        compiled network can meet (torch specialises sizes 0 and 1; 2 and up share one kernel). Then time it on 1
-        thread against ``threads`` and keep the faster count for the network (``net.network_threads``;
-        :func:`~colgnn_core.runtime.threads.fastest_thread_count`)."""
-        graph = None
-        for pairs in (0, 1, 2):
-            graph = self._rest_graph(pairs)
-            self.model.network(graph)
-        self.net.network_threads = fastest_thread_count(lambda: self.model.network(graph), self.threads,
+        compiled network can meet (torch specialises sizes 0 and 1; 2 and up share one kernel), at ``threads`` and at
+        1 thread (torch's thread count is part of what a compiled variant assumes: a count met first mid-run would
+        compile then, 0.3-4 s). Then time it on 1 thread against ``threads`` and keep the faster count for the
+        network (``net.network_threads``; :func:`~colgnn_core.runtime.threads.fastest_thread_count`)."""
+        graphs = [self._rest_graph(pairs) for pairs in (0, 1, 2)]
+        for n in sorted({1, self.threads}, reverse=True):
+            torch.set_num_threads(n)
+            for graph in graphs:
+                self.model.network(graph)
+        torch.set_num_threads(self.threads)
+        self.net.network_threads = fastest_thread_count(lambda: self.model.network(graphs[-1]), self.threads,
                                                         torch.set_num_threads)
 
     def _rest_graph(self, pairs: int):
