@@ -24,7 +24,7 @@ from numba import njit
 
 SHAPE_IDS = {"sphere": 0, "cylinder": 1, "cone": 2, "blade": 3}
 _EPS2 = 1e-24  # the formula code's guard under each square root of the SDF (tools._EPS2)
-_TINY = 1e-300  # a direction shorter than this has no unit vector (tools._unit)
+_TINY = 1e-300  # a direction shorter than this has no unit vector: a one-sided choice is taken instead
 
 
 def kernel_params(shape: str, params: dict[str, float]) -> np.ndarray:
@@ -57,7 +57,7 @@ def _round_box(dx, dy):
 
 @njit(cache=True, inline="always")
 def _round_box_grad(dx, dy):
-    """tools._grad_round_box_2d: (gx, gy) of _round_box w.r.t. its two excesses."""
+    """(gx, gy) of _round_box w.r.t. its two excesses; where both are <= 0, the larger one's axis."""
     if dx > 0 and dy > 0:
         n = math.sqrt(dx * dx + dy * dy)
         return dx / n, dy / n
