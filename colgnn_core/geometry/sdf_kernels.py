@@ -135,7 +135,7 @@ def _cone(x, y, z, radius, height, tip_radius, grad):
 
 @njit(cache=True, inline="always")
 def _segment(u, v, ax, ay, bx, by):
-    """tools._segment_distance for one point: (distance, du, dv) to the segment a-b."""
+    """tools._segment_distance for one point, with the offset from the closest point: (distance, du, dv)."""
     ex, ey = bx - ax, by - ay
     t = _clip01(((u - ax) * ex + (v - ay) * ey) / (ex * ex + ey * ey))
     du, dv = u - ax - t * ex, v - ay - t * ey

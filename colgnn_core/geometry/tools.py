@@ -150,11 +150,11 @@ def blade_section(height: float, thickness: float, bevel: float) -> np.ndarray:
 
 
 def _segment_distance(u, v, ax: float, ay: float, bx: float, by: float):
-    """Distance [N] from 2D points (u, v) to the segment (ax, ay)-(bx, by), and the offset from its closest point."""
+    """Distance [N] from 2D points (u, v) to the segment (ax, ay)-(bx, by)."""
     ex, ey = bx - ax, by - ay
     t = _clip01(((u - ax) * ex + (v - ay) * ey) / (ex * ex + ey * ey))
     du, dv = u - ax - t * ex, v - ay - t * ey
-    return _sqrt(du * du + dv * dv), du, dv
+    return _sqrt(du * du + dv * dv)
 
 
 def _blade_section_sdf(u, v, height: float, thickness: float, bevel: float):
@@ -162,7 +162,6 @@ def _blade_section_sdf(u, v, height: float, thickness: float, bevel: float):
 
     The section is symmetric in y, so only its right half matters: the bevel
     A(0,0)-B(h,bevel), the flat B-C(h,height) and the spine C-D(0,height).
-    Returns (d, parts) where parts holds what the analytic gradient needs.
     """
     h = 0.5 * thickness
     nlen = float(np.hypot(bevel, h))
@@ -174,14 +173,12 @@ def _blade_section_sdf(u, v, height: float, thickness: float, bevel: float):
     s1 = _segment_distance(u, v, 0.0, 0.0, h, bevel)
     s2 = _segment_distance(u, v, h, bevel, h, height)
     s3 = _segment_distance(u, v, h, height, 0.0, height)
-    dout = _minimum(_minimum(s1[0], s2[0]), s3[0])
-    d = _where(lmax > 0, dout, lmax)
-    return d, (l_bevel, l_flat, l_spine, s1, s2, s3, h, bevel, nlen)
+    return _where(lmax > 0, _minimum(_minimum(s1, s2), s3), lmax)
 
 
 def sdf_blade(p, length: float, height: float, thickness: float, bevel: float):
     """Knife: the convex section of :func:`blade_section` (exact) extruded over |x| <= length/2."""
-    d2, _ = _blade_section_sdf(_abs(p[:, 1]), p[:, 2], height, thickness, bevel)
+    d2 = _blade_section_sdf(_abs(p[:, 1]), p[:, 2], height, thickness, bevel)
     return _round_box_2d(d2, _abs(p[:, 0]) - 0.5 * length)
 
 
