@@ -214,6 +214,35 @@ def test_the_family_covers_the_workspace(name):
     assert span.max() > 0.45, span
 
 
+def _pressed_x(scene, poses: np.ndarray) -> np.ndarray:
+    """x of the rest vertex that the tool reaches deepest, on each pose that reaches into the rest shape, as a
+    fraction of the object's bbox in x (0..1)."""
+    v = np.asarray(scene.object.vertices)
+    lo, hi = v.min(0), v.max(0)
+    deepest = [v[int(np.argmin(d)), 0] for d in (scene.tool.sdf(v, p) for p in poses) if d.min() < 0]
+    return (np.asarray(deepest) - lo[0]) / (hi[0] - lo[0])
+
+
+def test_the_banana_s_first_stroke_goes_anywhere_so_its_family_presses_both_thin_ends():
+    """``family.first_target = "surface"`` draws a sequence's first stroke over the whole surface, as the later ones.
+    Aimed at ``target_xy`` (the middle), with one or two strokes in 60 frames, the family never pressed the outer
+    fifths of the banana (0 of 48 sequences at full resolution). Every pose stays inside the workspace."""
+    base = load_scene("cylinder_banana", "ci")
+    assert base.family["first_target"] == "surface"
+    cfg = copy.deepcopy(base.config)
+    cfg["family"]["first_target"] = "target"
+    aimed = build_scene("cylinder_banana", "ci", cfg, SCENES_DIR)
+    reached = {}
+    for name, scene in (("surface", base), ("target", aimed)):
+        runs = [sample_poses(scene, s, 60, clip=False) for s in split_seeds("train", 24)]
+        for poses in runs:
+            assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
+        x = [_pressed_x(scene, poses) for poses in runs]
+        reached[name] = (sum(bool(np.any(u < 0.2)) for u in x), sum(bool(np.any(u > 0.8)) for u in x))
+    assert reached["target"] == (0, 0), reached
+    assert min(reached["surface"]) >= 1, reached  # both thin ends
+
+
 def test_knife_torus_plunges_reach_the_workspace_floor():
     """The family's plunges go down to the workspace floor (``plunge_depth``), deeper than any press, so a fast
     plunge to the deepest valid pose is inside the training data; every pose stays inside the workspace."""

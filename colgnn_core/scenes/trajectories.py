@@ -209,7 +209,9 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
     ``drag_depth`` where given, else ``depth``); a *plunge* at the top speed to ``plunge_depth`` (m, drawn) or,
     without that key, the deepest press. The first stroke stops at the workspace floor.
     The first stroke aims at the family's target disk (``target_xy``, ``target_jitter``: contact within the first
-    frames), later ones anywhere. Every stroke may be tilted
+    frames), later ones anywhere; with ``first_target = "surface"`` the first one goes anywhere too, after a travel
+    from the rest pose (a long object whose sequences hold one or two strokes is otherwise pressed only near its
+    target). Every stroke may be tilted
     (``tilt_deg``) and turned (``yaw_deg``, about the radial direction from the object's centre when
     ``yaw_radial``), travels above the object at the retract height before it descends (no sweep through a raised
     part), and ends with a retract and ``settle`` frames of waiting, so sequences show the object returning to rest.
@@ -228,7 +230,9 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
         radial = np.degrees(np.arctan2(*(xy - centre)[::-1])) if fam.get("yaw_radial", False) else 0.0
         return _orientation(scene, tilt, azimuth, yaw + radial)
 
-    if len(path) == 1:  # the first stroke aims at the scene's target, as the narrow family did: contact early
+    first = len(path) == 1
+    aimed = first and fam.get("first_target", "target") == "target"
+    if aimed:  # the first stroke aims at the scene's target, as the narrow family did: contact early
         r = float(fam.get("target_jitter", 0.0)) * np.sqrt(rng.uniform())
         phi = rng.uniform(0, 2 * np.pi)
         xy = np.asarray(fam["target_xy"], dtype=np.float64) + r * np.array([np.cos(phi), np.sin(phi)])
@@ -236,10 +240,10 @@ def _coverage_stroke(scene: Scene, path: _Path, rng: np.random.Generator) -> Non
         h = _contact_heights(scene, xy[None], quat, fallback=float(scene.tool_rest_pose[2]) - _clearance(scene))[0]
         depth = min(depth, h - float(scene.workspace_min[2]))  # a deep plunge stops at the workspace floor
     else:
-        near = path.last[:2] if rng.uniform() < float(fam.get("near_fraction", 0.5)) else None
+        near = None if first or rng.uniform() >= float(fam.get("near_fraction", 0.5)) else path.last[:2]
         xy, quat, h = _coverage_target(scene, rng, depth, near, orientation)
     travel = max(float(path.last[2]), _rest_height(scene, xy))
-    if len(path) > 1 and np.linalg.norm(xy - path.last[:2]) > 1e-9:  # out of contact: at the family's top speed
+    if not aimed and np.linalg.norm(xy - path.last[:2]) > 1e-9:  # out of contact: at the family's top speed
         path.move_to(np.array([path.last[0], path.last[1], travel]), path.last[3:], top)
         path.move_to(np.array([xy[0], xy[1], travel]), quat, top)
     path.move_to(np.array([xy[0], xy[1], h - depth]), quat, speed)
@@ -306,6 +310,20 @@ def _finish(scene: Scene, path: _Path, frames: int, clip: bool) -> np.ndarray:
     poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
     poses[0] = scene.tool_rest_pose
     return poses
+
+
+def approach_start(scene: Scene, poses: np.ndarray) -> int:
+    """Index of the pose [T,7] where the first descent onto the object begins: the last pose before the tool first
+    reaches into the object's rest shape that is still ``rest_clearance`` from it (0 if none is, or if the tool
+    never reaches the object). A family whose first stroke travels (``first_target = "surface"``) spends its first
+    frames above the object; a short trajectory that must press (a bench) starts here."""
+    v = np.asarray(scene.object.vertices)
+    gap = np.array([float(scene.tool.sdf(v, p).min()) for p in poses])
+    inside = np.flatnonzero(gap < 0)
+    if not len(inside):
+        return 0
+    clear = np.flatnonzero(gap[: inside[0]] >= _clearance(scene) - 1e-9)
+    return int(clear[-1]) if len(clear) else 0
 
 
 def _check_frames(frames: int) -> int:
