@@ -243,6 +243,27 @@ def test_the_banana_s_first_stroke_goes_anywhere_so_its_family_presses_both_thin
     assert min(reached["surface"]) >= 1, reached  # both thin ends
 
 
+def test_a_bench_trajectory_of_a_travelling_family_starts_where_its_first_stroke_descends():
+    """``family_poses`` (what ``bench`` and ``stability`` run) of a family whose first stroke travels starts at the
+    last pose still ``rest_clearance`` from the object before it first reaches in, so 20 frames press; an aimed
+    family's trajectory is the family's own, from the rest pose."""
+    from colgnn_core.evaluation.measure import family_poses
+
+    banana = load_scene("cylinder_banana", "ci")
+    v = np.asarray(banana.object.vertices)
+    clearance = banana.config["tool"]["rest_clearance"]
+    for index in range(3):
+        poses = family_poses(banana, 20, index)
+        gap = np.array([banana.tool.sdf(v, p).min() for p in poses])
+        assert len(poses) == 20 and gap[0] >= clearance - 1e-9 and np.all(gap[1:np.argmax(gap < 0)] < clearance)
+        assert (gap < 0).sum() >= 8  # most of it presses
+        drawn = sample_poses(banana, split_seeds("test", index + 1)[index], 80)
+        start = int(np.flatnonzero(np.all(drawn == poses[0], axis=1))[0])
+        assert start > 0 and np.array_equal(drawn[start:start + 20], poses)  # a window of the family's own path
+    mat = load_scene("sphere_mat", "ci")
+    assert np.array_equal(family_poses(mat, 20), sample_poses(mat, split_seeds("test", 1)[0], 20))
+
+
 def test_knife_torus_plunges_reach_the_workspace_floor():
     """The family's plunges go down to the workspace floor (``plunge_depth``), deeper than any press, so a fast
     plunge to the deepest valid pose is inside the training data; every pose stays inside the workspace."""
