@@ -119,13 +119,11 @@ SCENES = ["cone_bunny", "knife_torus", "sphere_mat", "cylinder_banana"]
 def test_ci_scene_short_sequence_is_crossing_free(name):
     """14 frames of each scene at 'ci' (the tool reaches the object): verified again with exact CCD. A family whose
     first stroke travels (the banana's) is taken from where that stroke descends."""
-    from colgnn_core.scenes import load_scene, sample_poses
-    from colgnn_core.scenes.trajectories import approach_start
+    from colgnn_core.scenes import load_scene
+    from colgnn_core.scenes.trajectories import sample_pressing_poses
 
     scene = load_scene(name, "ci")
-    poses = sample_poses(scene, 1, 74)
-    start = approach_start(scene, poses) if scene.family.get("first_target") == "surface" else 0
-    seq = simulate_sequence(scene, poses[start:start + 14])
+    seq = simulate_sequence(scene, sample_pressing_poses(scene, 1, 14))
     assert_sequence_crossing_free(seq, scene.ground_height)
     assert seq.extra["newton_iterations"][1:].min() >= 1
     # The tool really touched the object (the barrier was active at some frame).

@@ -25,7 +25,7 @@ import numpy as np
 from colgnn_core.collision.metrics import PENETRATION_KEYS
 from colgnn_core.errors import InputError
 from colgnn_core.learn.data import check_manifest, dataset_files, read_manifest
-from colgnn_core.scenes.trajectories import approach_start, sample_poses, split_seeds
+from colgnn_core.scenes.trajectories import sample_pressing_poses, split_seeds
 
 
 def stats(values, empty: float | None = None) -> dict[str, float]:
@@ -36,7 +36,6 @@ def stats(values, empty: float | None = None) -> dict[str, float]:
     return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
 
 
-FIRST_TRAVEL_FRAMES = 60  # frames drawn beyond a trimmed family trajectory: its first travel and descent fit in them
 CONTACT_FRACTION = 0.1  # the contact region: this fraction of the vertices, those the ground truth moves most
 
 
@@ -136,16 +135,9 @@ def test_files(data_dir, scene) -> list[Path]:
 
 
 def family_poses(scene, frames: int, index: int = 0) -> np.ndarray:
-    """The ``index``-th held-out test trajectory of the scene's family, ``frames`` long [frames,7]. Where the
-    family's first stroke travels to a target anywhere on the surface (``first_target = "surface"``), the trajectory
-    starts where that stroke descends (:func:`~colgnn_core.scenes.trajectories.approach_start`), so a short one
-    presses as the other scenes' do; the family's paths are prefix-stable, so the longer draw holds the shorter."""
-    seed = split_seeds("test", index + 1)[index]
-    if scene.family.get("first_target", "target") == "target":
-        return sample_poses(scene, seed, frames)
-    poses = sample_poses(scene, seed, frames + FIRST_TRAVEL_FRAMES)
-    start = approach_start(scene, poses)
-    return poses[start:start + frames]
+    """The ``index``-th held-out test trajectory of the scene's family, ``frames`` long [frames,7]; where the family's
+    first stroke travels, from where it descends (:func:`~colgnn_core.scenes.trajectories.sample_pressing_poses`)."""
+    return sample_pressing_poses(scene, split_seeds("test", index + 1)[index], frames)
 
 
 def finite(obj) -> bool:

@@ -30,6 +30,7 @@ from colgnn_core.geometry.transforms import axis_angle_quat, interpolate_poses, 
 from colgnn_core.scenes.scene import Scene, tool_contact_height
 
 SPLITS = ("train", "val", "test")
+FIRST_TRAVEL_FRAMES = 60  # frames drawn beyond a trimmed trajectory: a first travel and descent fit in them
 SCRIPTED_KINDS = ("press", "stab", "slice", "drag", "circle", "random")
 
 
@@ -324,6 +325,17 @@ def approach_start(scene: Scene, poses: np.ndarray) -> int:
         return 0
     clear = np.flatnonzero(gap[: inside[0]] >= _clearance(scene) - 1e-9)
     return int(clear[-1]) if len(clear) else 0
+
+
+def sample_pressing_poses(scene: Scene, seed: int, frames: int) -> np.ndarray:
+    """:func:`sample_poses`, except that where the family's first stroke travels (``first_target = "surface"``) the
+    [frames,7] window starts at :func:`approach_start`, so a short trajectory presses as an aimed family's does. The
+    family's paths are prefix-stable, so the longer draw holds the shorter."""
+    if scene.family.get("first_target", "target") == "target":
+        return sample_poses(scene, seed, frames)
+    poses = sample_poses(scene, seed, frames + FIRST_TRAVEL_FRAMES)
+    start = approach_start(scene, poses)
+    return poses[start:start + frames]
 
 
 def _check_frames(frames: int) -> int:
