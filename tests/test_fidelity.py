@@ -264,6 +264,27 @@ def test_a_bench_trajectory_of_a_travelling_family_starts_where_its_first_stroke
     assert np.array_equal(family_poses(mat, 20), sample_poses(mat, split_seeds("test", 1)[0], 20))
 
 
+def test_a_pressing_window_is_drawn_longer_while_a_slow_first_travel_has_not_reached_the_object():
+    """The bunny's cone travels at 2-4 mm a step: with its first stroke anywhere, seed 1 at ``ci`` has not reached the
+    object FIRST_TRAVEL_FRAMES frames past a 14-frame window. The window is drawn longer (doubling) until it has, and
+    starts where the descent does, so it presses."""
+    from colgnn_core.scenes.trajectories import FIRST_TRAVEL_FRAMES, sample_pressing_poses
+
+    base = load_scene("cone_bunny", "ci")
+    cfg = copy.deepcopy(base.config)
+    cfg["family"]["first_target"] = "surface"
+    bunny = build_scene("cone_bunny", "ci", cfg, SCENES_DIR)
+    v = np.asarray(bunny.object.vertices)
+    first = sample_poses(bunny, 1, 14 + FIRST_TRAVEL_FRAMES)
+    assert min(bunny.tool.sdf(v, p).min() for p in first) > 0  # the first draw never reaches in
+    poses = sample_pressing_poses(bunny, 1, 14)
+    gap = np.array([bunny.tool.sdf(v, p).min() for p in poses])
+    assert len(poses) == 14 and gap[0] >= cfg["tool"]["rest_clearance"] - 1e-9 and gap.min() < 0
+    longer = sample_poses(bunny, 1, 14 + 4 * FIRST_TRAVEL_FRAMES)
+    start = int(np.flatnonzero(np.all(longer == poses[0], axis=1))[0])
+    assert start > FIRST_TRAVEL_FRAMES and np.array_equal(longer[start:start + 14], poses)
+
+
 def test_knife_torus_plunges_reach_the_workspace_floor():
     """The family's plunges go down to the workspace floor (``plunge_depth``), deeper than any press, so a fast
     plunge to the deepest valid pose is inside the training data; every pose stays inside the workspace."""

@@ -30,7 +30,8 @@ from colgnn_core.geometry.transforms import axis_angle_quat, interpolate_poses, 
 from colgnn_core.scenes.scene import Scene, tool_contact_height
 
 SPLITS = ("train", "val", "test")
-FIRST_TRAVEL_FRAMES = 60  # frames drawn beyond a trimmed trajectory: a first travel and descent fit in them
+FIRST_TRAVEL_FRAMES = 60  # frames drawn beyond a trimmed trajectory: a first travel and descent fit in most
+MAX_TRAVEL_FRAMES = 480   # ... and at most this many, doubling (the bunny's seed 1 at ci reaches it after ~100)
 SCRIPTED_KINDS = ("press", "stab", "slice", "drag", "circle", "random")
 
 
@@ -313,13 +314,18 @@ def _finish(scene: Scene, path: _Path, frames: int, clip: bool) -> np.ndarray:
     return poses
 
 
+def _gaps(scene: Scene, poses: np.ndarray) -> np.ndarray:
+    """[T] m: the tool's signed distance to the object's rest shape (its vertices) at each pose [T,7]."""
+    v = np.asarray(scene.object.vertices)
+    return np.array([float(scene.tool.sdf(v, p).min()) for p in poses])
+
+
 def approach_start(scene: Scene, poses: np.ndarray) -> int:
     """Index of the pose [T,7] where the first descent onto the object begins: the last pose before the tool first
     reaches into the object's rest shape that is still ``rest_clearance`` from it (0 if none is, or if the tool
     never reaches the object). A family whose first stroke travels (``first_target = "surface"``) spends its first
     frames above the object; a short trajectory that must press (a bench) starts here."""
-    v = np.asarray(scene.object.vertices)
-    gap = np.array([float(scene.tool.sdf(v, p).min()) for p in poses])
+    gap = _gaps(scene, poses)
     inside = np.flatnonzero(gap < 0)
     if not len(inside):
         return 0
@@ -330,12 +336,18 @@ def approach_start(scene: Scene, poses: np.ndarray) -> int:
 def sample_pressing_poses(scene: Scene, seed: int, frames: int) -> np.ndarray:
     """:func:`sample_poses`, except that where the family's first stroke travels (``first_target = "surface"``) the
     [frames,7] window starts at :func:`approach_start`, so a short trajectory presses as an aimed family's does. The
-    family's paths are prefix-stable, so the longer draw holds the shorter."""
+    draw is ``FIRST_TRAVEL_FRAMES`` longer, doubled while the tool has not reached the object, up to
+    ``MAX_TRAVEL_FRAMES`` (a slow tool's travel to a far target can take longer). The family's paths are
+    prefix-stable, so the longer draw holds the shorter."""
     if scene.family.get("first_target", "target") == "target":
         return sample_poses(scene, seed, frames)
-    poses = sample_poses(scene, seed, frames + FIRST_TRAVEL_FRAMES)
-    start = approach_start(scene, poses)
-    return poses[start:start + frames]
+    extra = FIRST_TRAVEL_FRAMES
+    while True:
+        poses = sample_poses(scene, seed, frames + extra)
+        if extra >= MAX_TRAVEL_FRAMES or _gaps(scene, poses).min() < 0:
+            start = approach_start(scene, poses)
+            return poses[start:start + frames]
+        extra *= 2
 
 
 def _check_frames(frames: int) -> int:
