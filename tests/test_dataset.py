@@ -1,8 +1,11 @@
 """Dataset generation: determinism, files + manifest, resume, shards, custom poses, bad input."""
 
 import copy
+import dataclasses
+import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +91,34 @@ def test_the_physics_fingerprint_follows_the_physics_not_the_mesh():
     assert len({scene.physics_fingerprint(), *others}) == 4
     # The mesh is the same, so only the physics fingerprint can tell the data apart.
     assert {v.object.fingerprint() for v in (stiffer, glued, rough)} == {scene.object.fingerprint()}
+
+
+def test_a_dhat_one_ulp_apart_is_the_same_physics_and_the_exact_float_fingerprint_is_still_accepted(dataset, tmp_path):
+    """Another numpy build computes the bounding-box diagonal, hence dhat, one ulp apart (session 30's device run):
+    the fingerprint must not change. Data recorded before session 30 carries the exact-float fingerprint: training
+    and a resumed `generate` accept it."""
+    scene = load_scene(SCENE, "ci")
+    apart = dataclasses.replace(scene, dhat=float(np.nextafter(scene.dhat, 1.0)))
+    assert apart.dhat != scene.dhat and apart.physics_fingerprint() == scene.physics_fingerprint()
+    legacy = scene.physics_fingerprint(exact=True)
+    assert legacy != scene.physics_fingerprint() and scene.accepts_physics(legacy)
+    stiffer = _variant(scene, material={"youngs_modulus": scene.material.youngs_modulus * (1 + 1e-9)})
+    assert not scene.accepts_physics(stiffer.physics_fingerprint())
+    assert not scene.accepts_physics(stiffer.physics_fingerprint(exact=True))
+    out, manifest = dataset
+    out = Path(shutil.copytree(out, tmp_path / "data"))
+    check_manifest(dict(manifest, physics_fingerprint=legacy), scene, "ds")
+    # a resumed generate keeps a sequence that records the exact-float fingerprint
+    path = sorted(out.glob("train_*.npz"))[0]
+    z = dict(np.load(path, allow_pickle=False))
+    z["physics_fingerprint"] = np.asarray(legacy)
+    np.savez_compressed(path, **z)
+    listed = json.loads((out / "manifest.json").read_text())  # as written then: the file's own digest
+    listed["sequences"][path.name]["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+    (out / "manifest.json").write_text(json.dumps(listed))
+    mtime = path.stat().st_mtime_ns
+    m = generate_dataset(SCENE, "ci", out, sequences=2, frames=4, test_sequences=1, progress=False)
+    assert path.stat().st_mtime_ns == mtime and path.name in m["sequences"]
 
 
 def test_training_refuses_data_simulated_with_other_physics(dataset):

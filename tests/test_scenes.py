@@ -122,6 +122,22 @@ def test_family_poses(name):
             assert np.abs(a - b).max() > 1e-3
 
 
+def test_a_family_sub_table_overrides_keys_at_its_resolution():
+    """cone_bunny's [family.full] sends the first stroke anywhere on the surface; `ci` keeps it aimed at target_xy, so
+    its short test sequences press within their first frames."""
+    full, ci = load_scene("cone_bunny", "full"), load_scene("cone_bunny", "ci")
+    assert full.family["first_target"] == "surface" and "first_target" not in ci.family
+    assert "full" not in full.family and "ci" not in ci.family
+    assert full.family["depth"] == ci.family["depth"] == [0.006, 0.025]
+    first_full = [_first_contact(full, sample_poses(full, s, 60)) for s in split_seeds("train", 3)]
+    first_ci = [_first_contact(ci, sample_poses(ci, s, 60)) for s in split_seeds("train", 3)]
+    assert max(first_ci) <= 10 and min(first_full) > max(first_ci)
+
+
+def _first_contact(s, poses) -> int:
+    return next(i for i, q in enumerate(poses) if _indentation(s, q) > 0)
+
+
 def test_depth_is_sane():
     # No fracture model: the tool never goes deeper than the family's max depth below first contact.
     s = load_scene("knife_torus", "ci")

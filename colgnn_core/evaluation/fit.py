@@ -285,7 +285,7 @@ def physics_changed(scene, work: Path, ckpt: Path) -> bool:
             before = json.loads(path.read_text()).get("physics_fingerprint")
         except (OSError, json.JSONDecodeError, AttributeError):
             before = None
-    changed = before is not None and before != now
+    changed = before is not None and not scene.accepts_physics(before)
     if changed:
         ckpt.unlink(missing_ok=True)
     _write_json(path, {"physics_fingerprint": now})

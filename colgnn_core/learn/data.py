@@ -77,7 +77,7 @@ def check_manifest(manifest: dict | None, scene, source: str) -> None:
     if fp is not None and fp != scene.object.fingerprint():
         raise InputError(f"{source}: dataset was generated on a different {scene.name!r} mesh (fingerprint mismatch)")
     fp = manifest.get("physics_fingerprint")
-    if fp is not None and fp != scene.physics_fingerprint():
+    if fp is not None and not scene.accepts_physics(fp):
         raise InputError(f"{source}: dataset was simulated with other {scene.name!r} physics (material, glued "
                          f"vertices, ground, friction, dt or tool changed since; physics fingerprint mismatch)")
 

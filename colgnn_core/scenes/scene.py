@@ -70,16 +70,30 @@ class Scene:
     target: np.ndarray = field(default_factory=lambda: np.zeros(3))
     config: dict = field(default_factory=dict, repr=False)
 
-    def physics_fingerprint(self) -> str:
+    def physics_fingerprint(self, exact: bool = False) -> str:
         """sha256 hex over what the ground truth depends on besides the object mesh: dt, material, glued vertices,
         ground, gravity, dhat, friction, the tool's shape and mesh. A sequence records it, so that data simulated
-        before a scene's physics changed (say, its mat glued down or its material stiffened) is not reused."""
+        before a scene's physics changed (say, its mat glued down or its material stiffened) is not reused.
+
+        Numbers enter at 12 significant digits and tool coordinates at 1 nm: dhat comes from the mesh's bounding-box
+        diagonal, which another numpy build (a cluster worker, another machine) can compute one ulp apart, and that
+        is no change of physics. ``exact``: the digest of the exact floats, which data written before session 30
+        records."""
+        return self._physics_digest(float if exact else (lambda x: float(f"{float(x):.12g}")))
+
+    def accepts_physics(self, fingerprint: str | None) -> bool:
+        """Was data recorded with ``fingerprint`` simulated with this scene's physics? Data written before session
+        30 records the fingerprint of the exact floats (this machine's); both forms are accepted."""
+        return fingerprint in (self.physics_fingerprint(), self.physics_fingerprint(exact=True))
+
+    def _physics_digest(self, num) -> str:
         h = hashlib.sha256()
-        h.update(json.dumps({"dt": float(self.dt), "E": float(self.material.youngs_modulus),
-                             "nu": float(self.material.poisson_ratio), "rho": float(self.material.density),
-                             "ground": self.ground_height, "gravity": np.asarray(self.gravity, float).tolist(),
-                             "dhat": float(self.dhat), "friction": float(self.friction),
-                             "tool": [self.tool.shape, {k: float(v) for k, v in self.tool.params.items()}]},
+        h.update(json.dumps({"dt": num(self.dt), "E": num(self.material.youngs_modulus),
+                             "nu": num(self.material.poisson_ratio), "rho": num(self.material.density),
+                             "ground": None if self.ground_height is None else num(self.ground_height),
+                             "gravity": [num(g) for g in np.asarray(self.gravity, float)],
+                             "dhat": num(self.dhat), "friction": num(self.friction),
+                             "tool": [self.tool.shape, {k: num(v) for k, v in self.tool.params.items()}]},
                             sort_keys=True).encode())
         h.update(np.ascontiguousarray(self.pinned, dtype=np.int64).tobytes())
         h.update(np.ascontiguousarray(np.round(self.tool.vertices, 9) + 0.0).tobytes())
@@ -388,7 +402,7 @@ def build_scene(name: str, resolution: str, cfg: dict, base_dir: Path | None = N
         tool_cfg.pop(k, None)
     tool = make_tool(shape, tool_cfg, resolution)
 
-    fam = dict(cfg["family"])
+    fam = at_resolution(cfg["family"], resolution)  # a [family.full] / [family.ci] sub-table overrides keys
     txy = np.asarray(fam["target_xy"], dtype=np.float64)
     h = surface_height(mesh, txy[None])[0]
     if not np.isfinite(h):

@@ -44,7 +44,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -174,7 +174,7 @@ def scene_stamp(scene) -> dict[str, str]:
     return {"object_fingerprint": scene.object.fingerprint(), "physics_fingerprint": scene.physics_fingerprint()}
 
 
-def _matches(job: _Job, seq: Sequence, stamp: dict[str, str]) -> bool:
+def _matches(job: _Job, seq: Sequence, stamp: dict[str, str], accepts_physics: Callable[[str], bool]) -> bool:
     """Was ``seq`` produced by ``job`` (same scene mesh and physics, seed, frames, solver options)? A sequence from
     before the physics fingerprint was recorded is taken on its mesh fingerprint alone."""
     ex = seq.extra
@@ -184,7 +184,7 @@ def _matches(job: _Job, seq: Sequence, stamp: dict[str, str]) -> bool:
             and str(ex["scene"]) == job.scene
             and str(ex["resolution"]) == job.resolution
             and str(ex["object_fingerprint"]) == stamp["object_fingerprint"]
-            and str(ex.get("physics_fingerprint", stamp["physics_fingerprint"])) == stamp["physics_fingerprint"]
+            and ("physics_fingerprint" not in ex or accepts_physics(str(ex["physics_fingerprint"])))
             and str(ex["sim_options"]) == _options_key(job)
             and int(ex["seed"]) in (job.seed, *job.fallback_seeds)
             and (job.poses is None or np.allclose(seq.tool_poses, job.poses))
@@ -295,7 +295,8 @@ def _write_manifest(out_dir: Path, header: dict, entries: dict[str, dict], faile
         fh.write("\n")
 
 
-def _is_done(job: _Job, manifest: dict, stamp: dict[str, str]) -> tuple[bool, dict | None]:
+def _is_done(job: _Job, manifest: dict, stamp: dict[str, str], accepts_physics: Callable[[str], bool]
+             ) -> tuple[bool, dict | None]:
     """(complete?, manifest entry to keep) for an existing file."""
     path = Path(job.file)
     if not path.is_file():
@@ -308,7 +309,7 @@ def _is_done(job: _Job, manifest: dict, stamp: dict[str, str]) -> tuple[bool, di
         seq = load_sequence(path)
     except (InputError, OSError):
         return False, None
-    if not _matches(job, seq, stamp):
+    if not _matches(job, seq, stamp, accepts_physics):
         return False, None
     if listed is not None and listed.get("sha256") == digest:
         return True, listed
@@ -408,7 +409,7 @@ def generate_dataset(
         raise InputError(f"{out / MANIFEST} belongs to {manifest.get('scene')}/{manifest.get('resolution')}, "
                          f"not {scene_name}/{resolution}")
     stamp = scene_stamp(scene)
-    done, todo, failures = _triage(my_jobs, manifest, stamp, retry_failed)
+    done, todo, failures = _triage(my_jobs, manifest, stamp, retry_failed, scene.accepts_physics)
     _write_manifest(out, header, done)
 
     bar = None
@@ -475,15 +476,15 @@ def _family_jobs(scene_name: str, resolution: str, out: Path, opts: tuple, split
     return jobs
 
 
-def _triage(my_jobs: list[_Job], manifest: dict, stamp: dict[str, str], retry_failed: bool
-            ) -> tuple[dict[str, dict], list[_Job], list[str]]:
+def _triage(my_jobs: list[_Job], manifest: dict, stamp: dict[str, str], retry_failed: bool,
+            accepts_physics: Callable[[str], bool]) -> tuple[dict[str, dict], list[_Job], list[str]]:
     """(finished sequences' manifest entries, jobs to simulate, known failures): a finished file is kept, a job
     whose every seed failed before is reported again (unless ``retry_failed``), the rest is to do."""
     done: dict[str, dict] = {}
     todo: list[_Job] = []
     failures: list[str] = []
     for job in my_jobs:
-        ok, entry = _is_done(job, manifest, stamp)
+        ok, entry = _is_done(job, manifest, stamp, accepts_physics)
         known = manifest.get("failed", {}).get(Path(job.file).name)
         if ok:
             done[Path(job.file).name] = entry

@@ -54,8 +54,9 @@ def box_scene(cells=(6, 6, 2), ground: bool = True, gravity: bool = True, tool_z
 def assert_sequence_crossing_free(seq, ground_height=None) -> None:
     """Independent check of a sequence with ipctk's exact CCD (Tight-Inclusion), built from the file's data only.
 
-    Every frame: no intersection between or within the object surface and the tool; every straight
-    frame-to-frame motion: collision-free; object above the ground plane if there is one.
+    Every frame: no intersection between or within the object surface and the tool; every motion from one frame
+    to the next collision-free, straight or through the intermediate states the file records for it
+    (``Sequence.motion``); object above the ground plane if there is one.
     """
     import ipctk
 
@@ -69,13 +70,13 @@ def assert_sequence_crossing_free(seq, ground_height=None) -> None:
     m = seq.tool_positions.shape[1]
     cm.can_collide = ipctk.make_static_obstacle_filter(cm.num_vertices - m)
     ccd = ipctk.TightInclusionCCD(tolerance=1e-6, max_iterations=10_000_000)
-    prev = None
     for t in range(seq.frames):
         v = cm.vertices(np.vstack([seq.object_positions[t], seq.tool_positions[t]]))
         assert not ipctk.has_intersections(cm, v), f"frame {t} intersects"
-        if prev is not None:
-            assert ipctk.is_step_collision_free(cm, prev, v,
-                                                narrow_phase_ccd=ccd), f"crossing between frames {t - 1} and {t}"
+        if t > 0:
+            legs = [cm.vertices(np.vstack(state)) for state in seq.motion(t)]
+            for a, b in zip(legs[:-1], legs[1:]):
+                assert ipctk.is_step_collision_free(cm, a, b, narrow_phase_ccd=ccd), (
+                    f"crossing between frames {t - 1} and {t} ({len(legs) - 2} intermediate states)")
         if ground_height is not None:
             assert seq.object_positions[t][:, 2].min() > ground_height, f"frame {t} below the ground"
-        prev = v
