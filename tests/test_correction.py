@@ -11,6 +11,7 @@ filtered out (one connected component for the object, one for the tool).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -388,12 +389,14 @@ def test_shipped_full_resolution_model_press_and_drag_and_fast_plunge(name, case
 
 
 def test_a_crossing_in_and_out_within_the_step_is_resolved_where_it_crossed():
-    """The shipped bunny model's proposal at step 14 of its second family trajectory: the cone's tip passes through
-    a face that the network swings across it, and out again, within the step. Pushed along its normal at t+1 (by
-    more every pass), that face only moved its crossing time, and the pass fell back after 13 iterations, carrying
-    the region with the cone; pushed along its normal where it crossed, by the margin there, it is resolved in 4."""
+    """The shipped bunny model's proposal at step 14 of its second family trajectory (the family as it was before
+    session 30, first stroke aimed at target_xy): the cone's tip passes through a face that the network swings across
+    it, and out again, within the step. Pushed along its normal at t+1 (by more every pass), that face only moved its
+    crossing time, and the pass fell back after 13 iterations, carrying the region with the cone; pushed along its
+    normal where it crossed, by the margin there, it is resolved in 4."""
     pred = _shipped("cone_bunny")
-    poses = family_poses(pred.scene, 40, index=1)
+    aimed = dataclasses.replace(pred.scene, family={**pred.scene.family, "first_target": "target"})
+    poses = family_poses(aimed, 40, index=1)
     pred.reset(tool_pose=poses[0])
     for pose in poses[1:14]:
         pred.step(pose)
