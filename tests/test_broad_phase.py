@@ -8,7 +8,8 @@ from colgnn_core.collision import exact
 from colgnn_core.collision.broad_phase import (CandidatePairs, Surface, ToolSDFBound, box_pairs, mesh_edges,
                                                step_candidates)
 from colgnn_core.collision.clearance import clearance_pairs
-from colgnn_core.collision.kernels import box_join, grid_join, grid_self_join, use_kernel_threads
+from colgnn_core.collision.kernels import (box_join, grid_join, grid_join_apart, grid_self_join, grid_self_join_apart,
+                                          use_kernel_threads)
 from colgnn_core.collision.pipeline import CollisionDetector, pair_points
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tools import make_tool
@@ -54,6 +55,37 @@ def test_grid_joins_match_brute_force(na, nb, size):
     own = grid_self_join(lo_a, hi_a)
     assert set(map(tuple, own)) == {(i, j) for i, j in brute_box_pairs(lo_a, hi_a, lo_a, hi_a) if i < j}
     assert len(own) == len(set(map(tuple, own)))
+
+
+def test_apart_joins_leave_out_exactly_the_pairs_that_share_a_vertex():
+    # Edges and triangles of a real surface (a grid's), with boxes grown so that every adjacent pair overlaps.
+    n = 12
+    ids = np.arange(n * n).reshape(n, n)
+    faces = np.concatenate([np.stack([ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel()], 1),
+                            np.stack([ids[:-1, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()], 1)])
+    edges = mesh_edges(faces)
+    X = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2) * 1.0
+    X = np.concatenate([X, np.zeros((n * n, 1))], 1)
+
+    def boxes(prims, grow):
+        P = X[prims]
+        return P.min(1) - grow, P.max(1) + grow
+
+    def shares(a, b):
+        return len(set(a) & set(b)) > 0
+
+    elo, ehi = boxes(edges, 0.3)
+    flo, fhi = boxes(faces, 0.3)
+    verts = np.arange(n * n)[:, None]
+    vlo, vhi = boxes(verts, 0.3)
+    own = set(map(tuple, grid_self_join(elo, ehi)))
+    apart = grid_self_join_apart(elo, ehi, edges)
+    assert set(map(tuple, apart)) == {(i, j) for i, j in own if not shares(edges[i], edges[j])}
+    assert len(apart) == len(set(map(tuple, apart))) and len(apart) < len(own) / 2  # most overlaps are neighbours
+    vf = set(map(tuple, grid_join(vlo, vhi, flo, fhi)))
+    vf_apart = grid_join_apart(vlo, vhi, verts, flo, fhi, faces)
+    assert set(map(tuple, vf_apart)) == {(v, f) for v, f in vf if v not in faces[f]}
+    assert 0 < len(vf_apart) < len(vf)
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="one core: numba runs one thread")

@@ -224,7 +224,10 @@ def concat_pairs(blocks):
 GRID_CELLS_PER_BOX = 4  # grid_join: at most this many cells per box on average (the grid coarsens beyond)
 
 
-@njit(cache=True, parallel=True)
+NO_PRIMS = np.zeros((0, 0), dtype=np.int64)  # grid joins: no vertex ids, so no pair is skipped as adjacent
+
+
+@njit(cache=True)
 def grid_join(lo_a, hi_a, lo_b, hi_b):
     """Uniform-grid join of two box sets [Ka,3], [Kb,3] -> pairs [K,2] (i, j) of overlapping closed boxes.
 
@@ -234,6 +237,15 @@ def grid_join(lo_a, hi_a, lo_b, hi_b):
     has at most ``GRID_CELLS_PER_BOX`` cells per box; a pair is reported in the first cell both boxes cover. The rows
     of ``a`` run in ``JOIN_CHUNKS`` blocks on numba's threads.
     """
+    return grid_join_apart(lo_a, hi_a, NO_PRIMS, lo_b, hi_b, NO_PRIMS)
+
+
+@njit(cache=True, parallel=True)
+def grid_join_apart(lo_a, hi_a, prims_a, lo_b, hi_b, prims_b):
+    """:func:`grid_join` without the pairs whose primitives share a vertex: ``prims_a`` [Ka,m], ``prims_b`` [Kb,k]
+    are the vertex ids of each box's primitive (a vertex [K,1], an edge [K,2], a triangle [K,3]; [0,0]: skip none).
+    On a surface most overlapping pairs of a neighbourhood are adjacent (a vertex meets its own faces, an edge its
+    neighbours): leaving them out here saves writing, mapping and filtering them."""
     na, nb = lo_a.shape[0], lo_b.shape[0]
     if na == 0 or nb == 0:
         return np.empty((0, 2), dtype=np.int64)
@@ -241,14 +253,25 @@ def grid_join(lo_a, hi_a, lo_b, hi_b):
     cl, ch, start, ids = _grid_cells(lo_b, hi_b, org, dims, inv)
     blocks = [np.empty((0, 2), dtype=np.int64) for _ in range(JOIN_CHUNKS)]
     for c in prange(JOIN_CHUNKS):
-        blocks[c] = _grid_rows(lo_a, hi_a, lo_b, hi_b, org, dims, inv, cl, start, ids, c * na // JOIN_CHUNKS,
-                               (c + 1) * na // JOIN_CHUNKS)
+        blocks[c] = _grid_rows(lo_a, hi_a, prims_a, lo_b, hi_b, prims_b, org, dims, inv, cl, start, ids,
+                               c * na // JOIN_CHUNKS, (c + 1) * na // JOIN_CHUNKS)
     return concat_pairs(blocks)
 
 
 @register_jitable
-def _grid_rows(lo_a, hi_a, lo_b, hi_b, org, dims, inv, cl, start, ids, i0, i1):
-    """Pairs (i, j) of :func:`grid_join` for the rows i0..i1-1 of ``a``."""
+def share_vertex(prims_a, i, prims_b, j):
+    """Whether primitive rows ``prims_a[i]`` and ``prims_b[j]`` (vertex ids) have a vertex in common (False for
+    primitives without ids, shape [K,0])."""
+    for u in range(prims_a.shape[1]):
+        for v in range(prims_b.shape[1]):
+            if prims_a[i, u] == prims_b[j, v]:
+                return True
+    return False
+
+
+@register_jitable
+def _grid_rows(lo_a, hi_a, prims_a, lo_b, hi_b, prims_b, org, dims, inv, cl, start, ids, i0, i1):
+    """Pairs (i, j) of :func:`grid_join_apart` for the rows i0..i1-1 of ``a``."""
     out = np.empty((max(16, 2 * (i1 - i0)), 2), dtype=np.int64)
     n = 0
     al = np.empty(3, dtype=np.int64)
@@ -266,7 +289,7 @@ def _grid_rows(lo_a, hi_a, lo_b, hi_b, org, dims, inv, cl, start, ids, i0, i1):
                         j = ids[q]
                         if x != max(a0, cl[j, 0]) or y != max(a1, cl[j, 1]) or z != max(a2, cl[j, 2]):
                             continue  # not the first cell both cover: the pair is met there
-                        if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j):
+                        if boxes_overlap(lo_a, hi_a, i, lo_b, hi_b, j) and not share_vertex(prims_a, i, prims_b, j):
                             if n == out.shape[0]:
                                 out = grow_pairs(out)
                             out[n, 0], out[n, 1] = i, j
@@ -274,9 +297,16 @@ def _grid_rows(lo_a, hi_a, lo_b, hi_b, org, dims, inv, cl, start, ids, i0, i1):
     return out[:n]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def grid_self_join(lo, hi):
     """Pairs [K,2] (i, j), i < j, of overlapping closed boxes within one set [K,3] (see :func:`grid_join`)."""
+    return grid_self_join_apart(lo, hi, NO_PRIMS)
+
+
+@njit(cache=True, parallel=True)
+def grid_self_join_apart(lo, hi, prims):
+    """:func:`grid_self_join` without the pairs whose primitives (vertex ids ``prims`` [K,m]; [0,0]: skip none)
+    share a vertex (see :func:`grid_join_apart`)."""
     nb = lo.shape[0]
     if nb < 2:
         return np.empty((0, 2), dtype=np.int64)
@@ -284,13 +314,14 @@ def grid_self_join(lo, hi):
     cl, ch, start, ids = _grid_cells(lo, hi, org, dims, inv)
     blocks = [np.empty((0, 2), dtype=np.int64) for _ in range(JOIN_CHUNKS)]
     for c in prange(JOIN_CHUNKS):
-        blocks[c] = _self_rows(lo, hi, dims, cl, ch, start, ids, c * nb // JOIN_CHUNKS, (c + 1) * nb // JOIN_CHUNKS)
+        blocks[c] = _self_rows(lo, hi, prims, dims, cl, ch, start, ids, c * nb // JOIN_CHUNKS,
+                               (c + 1) * nb // JOIN_CHUNKS)
     return concat_pairs(blocks)
 
 
 @register_jitable
-def _self_rows(lo, hi, dims, cl, ch, start, ids, i0, i1):
-    """Pairs (i, j), j > i, of :func:`grid_self_join` for the rows i0..i1-1."""
+def _self_rows(lo, hi, prims, dims, cl, ch, start, ids, i0, i1):
+    """Pairs (i, j), j > i, of :func:`grid_self_join_apart` for the rows i0..i1-1."""
     out = np.empty((max(16, 4 * (i1 - i0)), 2), dtype=np.int64)
     n = 0
     for i in range(i0, i1):
@@ -303,7 +334,7 @@ def _self_rows(lo, hi, dims, cl, ch, start, ids, i0, i1):
                         j = ids[q]
                         if j <= i or x != max(a0, cl[j, 0]) or y != max(a1, cl[j, 1]) or z != max(a2, cl[j, 2]):
                             continue
-                        if boxes_overlap(lo, hi, i, lo, hi, j):
+                        if boxes_overlap(lo, hi, i, lo, hi, j) and not share_vertex(prims, i, prims, j):
                             if n == out.shape[0]:
                                 out = grow_pairs(out)
                             out[n, 0], out[n, 1] = i, j

@@ -24,8 +24,9 @@ of quiet primitives cannot come closer than cos(theta/2) x their rest distance m
 only if within (2 quiet + SELF_CLEARANCE) / cos(MAX_FIT_TURN/2) at rest (a list built once), and of those only the
 ones whose bound, with each primitive's own deviation, falls to the threshold; a fit that turns more than
 ``MAX_FIT_TURN`` within the step is not used. Pairs with a hot vertex come from swept boxes grown by SELF_CLEARANCE
-(the hot primitives against every primitive whose box meets the hot region's box): boxes farther apart than that
-cannot hold points closer than it. Every candidate gets the additive CCD of :mod:`.clearance` (conservative: a pair
+(the hot primitives against every primitive whose box meets the hot region's box; the joins themselves leave out
+pairs that share a vertex, most of what overlaps on a surface): boxes farther apart than that cannot hold points
+closer than it. Every candidate gets the additive CCD of :mod:`.clearance` (conservative: a pair
 is passed only when its distance provably stays above the threshold), the object standing in for the tool.
 
 Repair, up to ``max_rounds`` rounds, each followed by the tool pass:
@@ -103,10 +104,10 @@ from numba import njit, prange
 from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
 from colgnn_core.collision.correction import CollisionCorrector, rigid_step
-from colgnn_core.collision.kernels import (grid_join, grid_self_join, point_triangle, point_triangle_distance,
-                                           map_pairs, prim_boxes, prims_meeting_box, row3, segment_distance,
-                                           segment_params, vertex_boxes)
-from colgnn_core.collision.surface_validity import SurfaceValidity, rigid_fit
+from colgnn_core.collision.kernels import (grid_join_apart, grid_self_join_apart, map_pairs, point_triangle,
+                                           point_triangle_distance, prim_boxes, prims_meeting_box, row3,
+                                           segment_distance, segment_params, vertex_boxes)
+from colgnn_core.collision.surface_validity import SurfaceValidity, rigid_fit_rows
 from colgnn_core.errors import InputError
 
 __all__ = ["SELF_CLEARANCE", "SELF_RATIO", "SELF_TARGET", "SelfCheck", "SelfContact", "SelfResult",
@@ -205,7 +206,6 @@ class SelfContact:
             raise InputError(f"max_rounds must be >= 0, got {max_rounds}")
         self.max_rounds = int(max_rounds)
         self.S = self.surface.vertices
-        self.rest_surface = np.ascontiguousarray(self.rest[self.S])
         E = self.surface.edges
         lengths = np.linalg.norm(self.rest[E[:, 0]] - self.rest[E[:, 1]], axis=1)
         self.quiet = float(QUIET_FRACTION * np.median(lengths)) if quiet is None else float(quiet)
@@ -233,25 +233,7 @@ class SelfContact:
         docstring: the identity, or the surface's rigid fit, whichever leaves fewer vertices hot)."""
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
         x1 = np.ascontiguousarray(x1, dtype=np.float64)
-        eye, zero = np.eye(3), np.zeros(3)
-        best = (_deviation(x0, x1, self.rest, self.S, self.n, eye, zero, eye, zero), 1.0)
-        if not np.any(best[0] > self.quiet):
-            return best
-        ids, rest = self.S, self.rest_surface
-        for _ in range(2):  # the fit, then the fit to the vertices it left quiet
-            (R0, p0), (R1, p1) = rigid_fit(x0, rest, ids), rigid_fit(x1, rest, ids)
-            cos_turn = np.clip(0.5 * (np.trace(R0.T @ R1) - 1.0), -1.0, 1.0)
-            if np.arccos(cos_turn) > MAX_FIT_TURN:
-                break
-            dev = _deviation(x0, x1, self.rest, self.S, self.n, R0, p0, R1, p1)
-            sigma = float(np.sqrt(0.5 * (1.0 + cos_turn)))  # cos(theta/2)
-            if np.count_nonzero(dev > self.quiet) < np.count_nonzero(best[0] > self.quiet):
-                best = (dev, sigma)
-            ids = self.S[dev[self.S] <= self.quiet]
-            if len(ids) < 4:
-                break
-            rest = self.rest[ids]
-        return best
+        return _best_deviation(x0, x1, self.rest, self.S, self.n, self.quiet, MAX_FIT_TURN)
 
     def check(self, x0: np.ndarray, x1: np.ndarray, *, moving: np.ndarray | None = None) -> SelfCheck:
         """Self pairs of the straight step x0 -> x1 ([N,3] m) that may come closer than the threshold, and the
@@ -598,17 +580,6 @@ def _harmonic_fill(disp, patch, offsets, nbrs, iterations):
 
 
 @njit(cache=True)
-def _in_face(v, faces, f):
-    return faces[f, 0] == v or faces[f, 1] == v or faces[f, 2] == v
-
-
-@njit(cache=True)
-def _share(edges, a, b):
-    return (edges[a, 0] == edges[b, 0] or edges[a, 0] == edges[b, 1] or edges[a, 1] == edges[b, 0]
-            or edges[a, 1] == edges[b, 1])
-
-
-@njit(cache=True)
 def _deviation(x0, x1, rest, S, n, R0, p0, R1, p1):
     """[n]: max(|x0_v - (R0 rest_v + p0)|, |x1_v - (R1 rest_v + p1)|) for v in S, 0 elsewhere (m)."""
     dev = np.zeros(n)
@@ -622,6 +593,32 @@ def _deviation(x0, x1, rest, S, n, R0, p0, R1, p1):
             b += db * db
         dev[v] = np.sqrt(max(a, b))
     return dev
+
+
+@njit(cache=True)
+def _best_deviation(x0, x1, rest, S, n, quiet, max_turn):
+    """(:func:`_deviation` [n] m, sigma) in the frames of :meth:`SelfContact.deviation`: the identity; else the
+    rigid fits of the surface at t and t+1, then the fits to the vertices they left quiet, if they leave fewer
+    vertices hot and turn at most ``max_turn`` rad within the step. In numba: up to four fits a check."""
+    eye, zero = np.eye(3), np.zeros(3)
+    best = _deviation(x0, x1, rest, S, n, eye, zero, eye, zero)
+    best_hot = np.count_nonzero(best > quiet)
+    sigma = 1.0
+    ids = S
+    for _ in range(2):  # the fit, then the fit to the vertices it left quiet
+        if best_hot == 0 or ids.shape[0] < 4:
+            break
+        R0, p0 = rigid_fit_rows(x0, ids, rest, ids)
+        R1, p1 = rigid_fit_rows(x1, ids, rest, ids)
+        cos_turn = min(max(0.5 * (np.trace(R0.T @ R1) - 1.0), -1.0), 1.0)
+        if np.arccos(cos_turn) > max_turn:
+            break
+        dev = _deviation(x0, x1, rest, S, n, R0, p0, R1, p1)
+        hot = np.count_nonzero(dev > quiet)
+        if hot < best_hot:
+            best, best_hot, sigma = dev, hot, np.sqrt(0.5 * (1.0 + cos_turn))  # cos(theta/2)
+        ids = S[dev[S] <= quiet]
+    return best, sigma
 
 
 @njit(cache=True)
@@ -660,34 +657,18 @@ def _candidates(X0, X1, hot, S, faces, edges, grow):
     cold_e = near_e[~hot_e[near_e]]  # hot edge pairs come from the self-join
     nflo, nfhi = prim_boxes(X0, X1, faces, near_f)
     vlo, vhi = vertex_boxes(X0, X1, hv)
-    p1 = grid_join(vlo - grow, vhi + grow, nflo, nfhi)
+    p1 = grid_join_apart(vlo - grow, vhi + grow, hv.reshape(-1, 1), nflo, nfhi, faces[near_f])
     cvlo, cvhi = vertex_boxes(X0, X1, cold_v)
-    p2 = grid_join(cvlo, cvhi, flo - grow, fhi + grow)
+    p2 = grid_join_apart(cvlo, cvhi, cold_v.reshape(-1, 1), flo - grow, fhi + grow, faces[hf])
     vf = np.concatenate((map_pairs(p1, hv, near_f), map_pairs(p2, cold_v, hf)))
     elo, ehi = prim_boxes(X0, X1, edges, he)
-    p3 = grid_self_join(elo - 0.5 * grow, ehi + 0.5 * grow)  # two boxes grown by half: within grow of each other
+    hot_edges = edges[he]
+    # two boxes grown by half: within grow of each other
+    p3 = grid_self_join_apart(elo - 0.5 * grow, ehi + 0.5 * grow, hot_edges)
     celo, cehi = prim_boxes(X0, X1, edges, cold_e)
-    p4 = grid_join(elo - grow, ehi + grow, celo, cehi)
+    p4 = grid_join_apart(elo - grow, ehi + grow, hot_edges, celo, cehi, edges[cold_e])
     ee = np.concatenate((map_pairs(p3, he, he), map_pairs(p4, he, cold_e)))
-    return vf[_vf_apart(vf, faces)], ee[_ee_apart(ee, edges)]
-
-
-@njit(cache=True, parallel=True)
-def _vf_apart(vf, faces):
-    """Bool [K]: (vertex, face) pairs whose vertex is not a corner of the face."""
-    keep = np.empty(vf.shape[0], dtype=np.bool_)
-    for r in prange(vf.shape[0]):
-        keep[r] = not _in_face(vf[r, 0], faces, vf[r, 1])
-    return keep
-
-
-@njit(cache=True, parallel=True)
-def _ee_apart(ee, edges):
-    """Bool [K]: (edge, edge) pairs without a common vertex."""
-    keep = np.empty(ee.shape[0], dtype=np.bool_)
-    for r in prange(ee.shape[0]):
-        keep[r] = not _share(edges, ee[r, 0], ee[r, 1])
-    return keep
+    return vf, ee
 
 
 def _close_pairs(X, vf, ee, faces, edges, reach) -> tuple:
@@ -805,7 +786,7 @@ def warm_up_self_contact() -> None:
     s = Surface.from_faces(faces, 4)
     hot = np.ones(4, dtype=np.bool_)
     vf, ee = _candidates(X, X + 0.01, hot, s.vertices, faces, s.edges, 0.1)
-    _deviation(X, X + 0.01, X, s.vertices, 4, np.eye(3), np.zeros(3), np.eye(3), np.zeros(3))
+    _best_deviation(X, X + 0.01, X, s.vertices, 4, 0.001, MAX_FIT_TURN)
     _pair_distances(X, vf, ee, faces, s.edges)
     for pairs, is_ee in ((vf, False), (ee, True)):
         _rest_pairs_needed(pairs, np.zeros(len(pairs)), np.zeros(4), hot, faces, s.edges, is_ee, 0.0, 1.0)
