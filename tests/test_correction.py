@@ -19,8 +19,8 @@ import pytest
 import torch
 
 from colgnn_core.collision.clearance import CLEARANCE
-from colgnn_core.collision.correction import (RIGID, SLIDE, STAY, CollisionCorrector, certify_translating,
-                                              certify_triangles, rigid_step, sliding_positions)
+from colgnn_core.collision.correction import (PUSH_RULES, RIGID, SLIDE, STAY, CollisionCorrector, certify_translating,
+                                              certify_triangles, merge_pushes, rigid_step, sliding_positions)
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import family_poses
 from colgnn_core.collision.clearance import ClearanceResult
@@ -104,10 +104,12 @@ def _corrector(scene, **kw):
 
 @pytest.mark.parametrize("name", ["cone_bunny", "knife_torus", "sphere_mat", "cylinder_banana"])
 @pytest.mark.parametrize("press", [0.004, 0.02])
-def test_static_object_tool_driven_in_one_step_is_corrected(name, press):
-    """The network did nothing while the tool moved 4 mm or 20 mm (3x the training step) into the object."""
+@pytest.mark.parametrize("rule", PUSH_RULES)
+def test_static_object_tool_driven_in_one_step_is_corrected(name, press, rule):
+    """The network did nothing while the tool moved 4 mm or 20 mm (3x the training step) into the object; with
+    either push rule."""
     scene = ci_scene(name)
-    corr, tpl = _corrector(scene)
+    corr, tpl = _corrector(scene, push_rule=rule)
     pose0, pose1 = _contact_step(scene, press)
     x0 = tpl.rest.numpy().copy()
     raw = x0.copy()
@@ -254,6 +256,22 @@ def test_rigid_step_maps_tool_vertices():
                                atol=1e-14)
 
 
+def test_merge_pushes_averages_or_takes_the_largest():
+    vid = np.array([7, 2, 7, 7, 2])
+    disp = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0], [-1.0, 1.0, 0.0], [0.0, -2.0, 0.0]])
+    ids, mean = merge_pushes(vid, disp, "mean")
+    np.testing.assert_array_equal(ids, [2, 7])
+    np.testing.assert_allclose(mean, [[0.0, 0.0, 0.0], [0.0, 1.0 / 3.0, 1.0]])
+    ids, largest = merge_pushes(vid, disp, "largest")
+    np.testing.assert_array_equal(ids, [2, 7])
+    np.testing.assert_array_equal(largest[1], [0.0, 0.0, 3.0])
+    assert abs(largest[0, 1]) == 2.0 and largest[0, 0] == largest[0, 2] == 0.0  # a tie: one of the two, whole
+    ids, largest = merge_pushes(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), "largest")
+    assert ids.shape == (0,) and largest.shape == (0, 3)
+    with pytest.raises(InputError, match="push rule must be one of mean, largest"):
+        merge_pushes(vid, disp, "max")
+
+
 def test_corrector_rejects_bad_input():
     scene = ci_scene("cone_bunny")
     corr, tpl = _corrector(scene)
@@ -264,6 +282,8 @@ def test_corrector_rejects_bad_input():
         corr.correct(x0, bad, scene.tool_rest_pose, scene.tool_rest_pose)
     with pytest.raises(InputError, match="positions must be"):
         corr.correct(x0, x0[:-1], scene.tool_rest_pose, scene.tool_rest_pose)
+    with pytest.raises(InputError, match="push_rule must be one of mean, largest"):
+        _corrector(scene, push_rule="max")
 
 
 # -- corrected rollouts through the Predictor (hard cases) ----------------------------------------------------------

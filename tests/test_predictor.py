@@ -183,6 +183,26 @@ def test_the_correction_budget_comes_from_the_scene_and_an_explicit_one_wins(sce
             _pred(wrong)
 
 
+def test_the_push_rule_comes_from_the_scene(scene):
+    """knife_torus merges the pushes on a vertex by the largest (its blade's two sides cancel in a mean: the scene
+    TOML); the other scenes average; the Predictor's tool pass uses the scene's rule; a bad value is refused by
+    name."""
+    import dataclasses
+
+    from colgnn_core.runtime.predictor import correction_push_rule
+    from colgnn_core.scenes import load_scene, scene_names
+
+    assert {n: correction_push_rule(load_scene(n, "ci")) for n in scene_names()} == {
+        "cone_bunny": "mean", "knife_torus": "largest", "sphere_mat": "mean", "cylinder_banana": "mean"}
+    assert _pred(scene).corrector.push_rule == "mean"
+    asking = dataclasses.replace(scene, config={**scene.config, "correction": {"push_rule": "largest"}})
+    assert _pred(asking).corrector.push_rule == "largest"
+    for bad in ("max", 1, True):
+        wrong = dataclasses.replace(scene, config={**scene.config, "correction": {"push_rule": bad}})
+        with pytest.raises(InputError, match="correction.push_rule must be one of mean, largest"):
+            _pred(wrong)
+
+
 def test_the_self_contact_default_comes_from_the_scene_and_an_explicit_one_wins(scene):
     """sphere_mat and cylinder_banana turn the self-contact stage on (their models' steps are mostly valid surfaces,
     so the stage is cheap: their TOMLs say what it costs); the others leave it off; an explicit choice wins; a bad

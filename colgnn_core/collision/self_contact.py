@@ -103,7 +103,7 @@ from numba import njit, prange
 
 from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
-from colgnn_core.collision.correction import CollisionCorrector, rigid_step
+from colgnn_core.collision.correction import CollisionCorrector, merge_pushes, rigid_step
 from colgnn_core.collision.kernels import (grid_join_apart, grid_self_join_apart, map_pairs, point_triangle,
                                            point_triangle_distance, prim_boxes, prims_meeting_box, row3,
                                            segment_distance, segment_params, vertex_boxes)
@@ -400,11 +400,7 @@ class SelfContact:
             for k in range(4):
                 vids.append(ids[:, k])
                 disps.append((scale * c[:, k])[:, None] * n)
-        vid, disp = np.concatenate(vids), np.concatenate(disps)
-        uniq, inv = np.unique(vid, return_inverse=True)
-        cnt = np.bincount(inv, minlength=len(uniq)).astype(np.float64)
-        acc = np.stack([np.bincount(inv, weights=disp[:, k], minlength=len(uniq)) for k in range(3)], axis=1)
-        return uniq, acc / cnt[:, None]
+        return merge_pushes(np.concatenate(vids), np.concatenate(disps), "mean")
 
     def _fallback(self, corrector: CollisionCorrector, x0, x, pose0, pose1, T0, T1, clearance: bool, *,
                   give_way: bool = False) -> tuple[np.ndarray, np.ndarray, int] | None:

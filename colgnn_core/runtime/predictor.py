@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, CollisionCorrector
+from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, PUSH_RULES, CollisionCorrector
 from colgnn_core.collision.kernels import use_kernel_threads
 from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
@@ -179,6 +179,16 @@ def correction_iterations(scene) -> int:
     value = correction_table(scene).get("max_iterations", DEFAULT_MAX_ITERATIONS)
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise InputError(f"{scene.name}: correction.max_iterations must be an integer >= 0, got {value!r}")
+    return value
+
+
+def correction_push_rule(scene) -> str:
+    """How the tool pass merges several pushes on one vertex for ``scene``: its TOML's ``[correction] push_rule``
+    (or ``[correction.<resolution>]``'s), else ``mean`` (:func:`~colgnn_core.collision.correction.merge_pushes`).
+    InputError when the value is not one of PUSH_RULES."""
+    value = correction_table(scene).get("push_rule", "mean")
+    if value not in PUSH_RULES:
+        raise InputError(f"{scene.name}: correction.push_rule must be one of {', '.join(PUSH_RULES)}, got {value!r}")
     return value
 
 
@@ -323,7 +333,8 @@ class Predictor:
         if max_iterations is None:
             max_iterations = correction_iterations(scene)
         self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
-                                             max_iterations=max_iterations) if self.correction else None)
+                                             max_iterations=max_iterations, push_rule=correction_push_rule(scene))
+                          if self.correction else None)
         if self_contact is None:
             self_contact = self_contact_default(scene)
         self.self_contact = (SelfContact(tpl.surface_faces, tpl.num_object_nodes, self.net.rest.numpy())
