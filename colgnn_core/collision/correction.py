@@ -702,7 +702,7 @@ class CollisionCorrector:
 def merge_pushes(vid: np.ndarray, disp: np.ndarray, rule: str = "mean") -> tuple[np.ndarray, np.ndarray]:
     """One displacement per vertex from several: (sorted unique vertex ids [K], displacements [K,3] m) from the
     pushes ``disp`` [P,3] (m) on vertices ``vid`` [P]. ``mean``: their average; ``largest``: the one of largest
-    norm (the first in input order among equal norms)."""
+    norm (the last in input order among equal norms)."""
     uniq, inv = np.unique(vid, return_inverse=True)
     if rule == "largest":
         order = np.lexsort(((disp * disp).sum(1), inv))  # by vertex, then by norm: each vertex's last is its largest
