@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from colgnn_core.collision import exact
-from colgnn_core.collision.broad_phase import (CandidatePairs, Surface, ToolSDFBound, box_pairs, mesh_edges,
-                                               step_candidates)
+from colgnn_core.collision.broad_phase import (CandidatePairs, Surface, ToolSDFBound, active_ring, box_pairs,
+                                               mesh_edges, step_candidates)
 from colgnn_core.collision.clearance import clearance_pairs
-from colgnn_core.collision.kernels import (box_join, grid_join, grid_join_apart, grid_self_join, grid_self_join_apart,
-                                          use_kernel_threads)
+from colgnn_core.collision.kernels import (box_join, changed_rows, grid_join, grid_join_apart, grid_self_join,
+                                          grid_self_join_apart, use_kernel_threads)
 from colgnn_core.collision.pipeline import CollisionDetector, pair_points
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.tools import make_tool
@@ -198,6 +198,42 @@ def test_sdf_culling_keeps_every_colliding_pair():
             total_hits += len(hits[kind])
         assert res.candidates.total() <= res_plain.candidates.total()
     assert total_hits > 20  # the steps really collide
+
+
+def test_active_candidates_are_the_full_candidates_of_the_active_primitives():
+    """``step_candidates(active=...)``, with and without SDF culling, gives exactly the pairs of the full call whose
+    object primitive has an active vertex; the ring holds every vertex of those primitives."""
+    rng = np.random.default_rng(4)
+    V, F, tool = _object_and_tool()
+    so, st = Surface.from_faces(F, len(V)), Surface.from_faces(tool.faces, len(tool.vertices))
+    prims = {"vf": lambda i: [i], "fv": lambda f: so.faces[f], "ee": lambda e: so.edges[e]}
+    kept = 0
+    for trial in range(8):
+        X = _random_step(rng, V, tool)
+        active = rng.random(len(V)) < (0.02 if trial % 2 else 0.3)
+        ring = active_ring(active, so)
+        for f in range(len(F)):
+            if active[F[f]].any():
+                assert np.isin(F[f], ring).all()
+        for bound in (None, ToolSDFBound(tool)):
+            kw = dict(tool_bound=bound, tool_pose_t0=X[4], tool_pose_t1=X[5], cache={})
+            full = step_candidates(*X[:2], so, *X[2:4], st, **kw)
+            part = step_candidates(*X[:2], so, *X[2:4], st, active=active, **kw)
+            for kind in ("vf", "fv", "ee"):
+                col = 0 if kind != "fv" else 1
+                want = {tuple(r) for r in getattr(full, kind) if active[prims[kind](r[col])].any()}
+                assert {tuple(r) for r in getattr(part, kind)} == want, kind
+                kept += len(want)
+    assert kept > 50
+
+
+def test_changed_rows_matches_numpy():
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(500, 3))
+    B = A.copy()
+    B[rng.random(500) < 0.1, rng.integers(0, 3)] += 1e-12
+    assert np.array_equal(changed_rows(A, B), np.any(A != B, axis=1))
+    assert 20 < changed_rows(A, B).sum() < 100
 
 
 def test_tool_bounds_for_every_shape_and_lipschitz_sdf():

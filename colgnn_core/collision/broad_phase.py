@@ -55,7 +55,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 
 __all__ = ["Surface", "CandidatePairs", "ToolSDFBound", "mesh_edges", "box_pairs", "sdf_near_primitives",
-           "check_positions", "step_candidates", "warm_up_broad_phase"]
+           "check_positions", "step_candidates", "active_ring", "active_primitives", "warm_up_broad_phase"]
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
@@ -255,19 +255,22 @@ def _max_edge_length(X: np.ndarray, surface: Surface, cache: dict | None) -> flo
 
 
 def sdf_near_primitives(X0, X1, surface: Surface, tool_bound: "ToolSDFBound", pose0, pose1,
-                        tool_displacement: float, cache: dict | None = None
+                        tool_displacement: float, cache: dict | None = None, vertices: np.ndarray | None = None
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ids of object surface vertices, edges and faces that may touch the tool (see module docstring).
 
     X0, X1: [N,3] object positions at t0 and t1 (float64, C order); pose0, pose1: tool poses [7];
     tool_displacement: largest tool-vertex motion over the step (m). ``cache`` (a dict kept
-    by the caller across steps) speeds up the longest-edge bound.
+    by the caller across steps) speeds up the longest-edge bound. ``vertices``: sorted surface vertex ids to
+    examine (default all): a primitive whose vertices are all among them is in the result exactly when it is in
+    the result for all vertices (the bounds below are per primitive, with the same global reach); others may
+    be missing or extra.
     """
-    S = surface.vertices
+    S = surface.vertices if vertices is None else vertices
     budget = tool_displacement + 2.0 * tool_bound.margin
     lmax0 = _max_edge_length(X0, surface, cache)
     lmax1 = _max_edge_length(X1, surface, cache)
-    dmax = _max_row_distance(X1, X0, S)
+    dmax = _max_row_distance(X1, X0, surface.vertices)
     # A vertex with s0 + s1 - Lmax0 - Lmax1 - Dmax > budget rules out itself and every edge and
     # face it is part of (their bounds below are at least that large).
     reach = budget + lmax0 + lmax1 + dmax
@@ -346,7 +349,8 @@ def check_positions(X, n: int, name: str) -> np.ndarray:
 
 def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool_t1, tool_surface: Surface, *,
                     tool_bound: ToolSDFBound | None = None, tool_pose_t0=None, tool_pose_t1=None,
-                    check: bool = True, cache: dict | None = None, clearance: float = 0.0) -> CandidatePairs:
+                    check: bool = True, cache: dict | None = None, clearance: float = 0.0,
+                    active: np.ndarray | None = None) -> CandidatePairs:
     """Candidate pairs for the linear motion t0 -> t1 of object [N,3] and tool [M,3] positions (m).
 
     With ``tool_bound`` and both tool poses, object primitives are first culled with the
@@ -354,6 +358,8 @@ def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool
     then the tool positions must be ``tool.world_vertices(pose)`` at both ends);
     ``cache`` is a dict the caller keeps across steps of the same object (edge-length bounds).
     ``clearance`` (m): every pair that may come closer than this during the step (default: that may touch).
+    ``active``: bool [N] or None (all): only object primitives with at least one active vertex take part (the
+    correction's later passes re-examine only what the pass before moved or flagged).
     """
     if not clearance >= 0:
         raise InputError(f"clearance must be >= 0 (m), got {clearance}")
@@ -375,17 +381,49 @@ def step_candidates(object_t0, object_t1, object_surface: Surface, tool_t0, tool
                 raise InputError(f"tool positions differ from the tool mesh at the given poses by {dev:.3g} m")
             bound = tool_bound.widened(2.0 * dev)
         # The clearance enters the SDF bound like extra tool motion: s0 + s1 - d - (D + 2c) - 2m > 0.
+        # With ``active``: the SDF bounds of the active primitives' vertices only (their bounds use nothing else).
+        ring = None if active is None else active_ring(active, object_surface)
         near_v, near_e, near_f = sdf_near_primitives(X0, X1, object_surface, bound, tool_pose_t0, tool_pose_t1,
-                                                     D + 2.0 * clearance, cache)
+                                                     D + 2.0 * clearance, cache, ring)
     else:
         near_v = object_surface.vertices
         near_e = np.arange(len(object_surface.edges))
         near_f = np.arange(len(object_surface.faces))
+    if active is not None:
+        near_v, near_e, near_f = active_primitives(active, near_v, near_e, near_f, object_surface.edges,
+                                                   object_surface.faces)
     if len(near_v) + len(near_e) + len(near_f) == 0:
         return CandidatePairs()
     vf, fv, ee = _swept_box_pairs(X0, X1, T0, T1, near_v, near_e, near_f, object_surface.faces,
                                   object_surface.edges, tool_surface.faces, tool_surface.edges, float(clearance))
     return CandidatePairs(vf=vf, fv=fv, ee=ee)
+
+
+def active_ring(active: np.ndarray, surface: Surface) -> np.ndarray:
+    """Sorted ids [K] of the vertices of every face of ``surface`` with a vertex marked in ``active`` (bool [N]):
+    the vertices of every primitive with an active vertex (each edge lies on a face)."""
+    off, ids = surface.vertex_faces
+    return _face_ring(active, surface.faces, off, ids)
+
+
+@njit(cache=True)
+def _face_ring(active, faces, vf_off, vf_ids):
+    """:func:`active_ring` over the vertex -> face CSR (``vf_off`` [N+1], ``vf_ids``): cost in the active vertices."""
+    ring = np.zeros(active.shape[0], dtype=np.bool_)
+    for v in range(active.shape[0]):
+        if active[v]:
+            for q in range(vf_off[v], vf_off[v + 1]):
+                f = vf_ids[q]
+                ring[faces[f, 0]] = ring[faces[f, 1]] = ring[faces[f, 2]] = True
+    return np.flatnonzero(ring)
+
+
+def active_primitives(active: np.ndarray, vertices: np.ndarray, edges: np.ndarray, faces: np.ndarray,
+                      all_edges: np.ndarray, all_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ids among ``vertices`` [Kv], ``edges`` [Ke] and ``faces`` [Kf] (ids into ``all_edges`` [E,2] and
+    ``all_faces`` [F,3]) of the primitives with at least one vertex marked in ``active`` (bool [N])."""
+    return (vertices[active[vertices]], edges[active[all_edges[edges]].any(axis=1)],
+            faces[active[all_faces[faces]].any(axis=1)])
 
 
 @njit(cache=True)
@@ -450,5 +488,6 @@ def warm_up_broad_phase(X: np.ndarray, surface: Surface) -> None:
     lb0, lb1 = sphere_bounds(X, X, S, np.zeros(3), np.zeros(3), 0.1)
     ve, vf = surface.vertex_edges, surface.vertex_faces
     _near_primitives(X, X, S, lb0, lb1, 1.0, 2.0, surface.edges, surface.faces, ve[0], ve[1], vf[0], vf[1])
+    active_ring(np.ones(surface.n_vertices, dtype=np.bool_), surface)
     _max_edge_length(X, surface, {})
     box_pairs(X, X + 0.1, X, X)

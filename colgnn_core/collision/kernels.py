@@ -448,6 +448,16 @@ def longest_edge(X, edges):
     return m
 
 
+@njit(cache=True)
+def changed_rows(A, B):
+    """Bool [N]: rows of A [N,3] that differ from B [N,3] in any entry (as ``np.any(A != B, axis=1)``, without
+    its temporaries)."""
+    out = np.zeros(A.shape[0], dtype=np.bool_)
+    for i in range(A.shape[0]):
+        out[i] = (A[i, 0] != B[i, 0]) | (A[i, 1] != B[i, 1]) | (A[i, 2] != B[i, 2])
+    return out
+
+
 @register_jitable
 def vertex_boxes(X0, X1, ids):
     lo = np.empty((len(ids), 3))

@@ -104,9 +104,9 @@ from numba import njit, prange
 from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.clearance import MAX_ITERATIONS, clearance_pairs
 from colgnn_core.collision.correction import CollisionCorrector, merge_pushes, rigid_step
-from colgnn_core.collision.kernels import (grid_join_apart, grid_self_join_apart, map_pairs, point_triangle,
-                                           point_triangle_distance, prim_boxes, prims_meeting_box, row3,
-                                           segment_distance, segment_params, vertex_boxes)
+from colgnn_core.collision.kernels import (changed_rows, grid_join_apart, grid_self_join_apart, map_pairs,
+                                           point_triangle, point_triangle_distance, prim_boxes, prims_meeting_box,
+                                           row3, segment_distance, segment_params, vertex_boxes)
 from colgnn_core.collision.surface_validity import SurfaceValidity, rigid_fit_rows
 from colgnn_core.errors import InputError
 
@@ -322,7 +322,7 @@ class SelfContact:
             out.invalid_after = int(self.validity.invalid(x).sum())
             ms["fallback"] = 1e3 * (time.perf_counter() - t)
         out.positions = x
-        out.moved = int(np.sum(np.any(x != np.asarray(x1), axis=1)))
+        out.moved = int(changed_rows(x, np.ascontiguousarray(x1, dtype=np.float64)).sum())
         ms["total"] = 1e3 * (time.perf_counter() - t_start)
         out.timings_ms = ms
         return out
