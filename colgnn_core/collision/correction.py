@@ -53,9 +53,6 @@ closer than about 1e-4 m as colliding, so the published state keeps a 2e-4 m cle
    both ends at the margin, the chord between them nearer). Each one moves its object
    primitive at t+1 away from the tool primitive along their separation at the time found,
    t*, by (margin - d*) / t*, barycentric-weighted like 3.
-   After a pass's pushes and projection, the primitives around the vertices they moved get step 4 once more
-   (a pass's pushes leave a few neighbours within the trigger distance: the banana's contact steps took three
-   passes for that, two since session 34).
 6. Repeat 1-5 until the detection is clean, nothing is closer than ``TRIGGER x margin``
    and the clearance holds, at most ``max_iterations`` times. Each pass after the first examines (steps 1, 2
    and 4) only the primitives with a vertex that the pass before moved or flagged: every other primitive has
@@ -315,22 +312,6 @@ class CollisionCorrector:
             out[k] = pairs[sel]
             toi[k] = np.where(nr.hit[sel], nr.toi[sel], np.inf)
         return out, toi, n_hit
-
-    def _settle(self, x1: np.ndarray, start: np.ndarray, T1: np.ndarray, pose1: np.ndarray) -> np.ndarray:
-        """Proximity pushes once more, in place on ``x1`` [N,3], for the primitives around the vertices that this
-        pass moved from ``start`` [N,3]: a pass's pushes leave a few neighbouring primitives within the trigger
-        distance, which would otherwise cost a whole pass (the banana's contact steps: 3 passes, 2 with this). The
-        next pass still examines everything this one moved. Returns the vertex ids [K] of the pairs pushed."""
-        ids = active_ring(changed_rows(x1, start), self.surface)
-        lmax = longest_edge(x1, self.surface.edges)
-        sdf = self._surface_sdf(x1, pose1, self._proximity_level + lmax, ids)
-        vids, disps, n_close = self._proximity(x1, T1, pose1, sdf, lmax, ids)
-        if n_close == 0:
-            return np.zeros(0, dtype=np.int64)
-        vid, disp = merge_pushes(np.concatenate(vids), np.concatenate(disps), self.push_rule)
-        x1[vid] += disp
-        self._project(x1, pose1, None, ids)
-        return np.concatenate(vids).astype(np.int64)
 
     def _flagged(self, hits: dict) -> np.ndarray:
         """Object vertex ids [K] of this pass's crossing pairs ``hits`` and proximity pairs (with repeats)."""
@@ -649,8 +630,6 @@ class CollisionCorrector:
             if len(vid):
                 x1[vid] += disp
             pushed = self._project(x1, pose1, None if len(vid) or n_close else sdf, ids)
-            if len(vid) or pushed:
-                flagged = np.concatenate([flagged, self._settle(x1, start, T1, pose1)])
             t_resolve += time.perf_counter() - t
             if n_hits == 0 and pushed == 0 and n_close == 0:
                 if not clearance:
