@@ -46,7 +46,7 @@ results: setup
 # docs/SPEED.md and docs/bench/*.json: the four shipped models against the IPC solver, one process, written by the
 # command itself (about 5 min; run it on a quiet machine: the page records the load).
 speed: setup
-	$(VPY) -m colgnn_core bench --scene all --threads 2 --compile --frames 20 --markdown docs/SPEED.md
+	$(VPY) -m colgnn_core bench --scene all --threads 2 --compile --frames 20 --rollouts 5 --markdown docs/SPEED.md
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

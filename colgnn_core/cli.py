@@ -166,7 +166,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for name in scenes:
         result = bench(name, checkpoint=args.checkpoint, frames=args.frames, threads=args.threads,
                        correction=not args.no_correction, progress=not args.json, compile=args.compile,
-                       self_contact=args.self_contact)
+                       self_contact=args.self_contact, warm_up=not args.cold, rollouts=args.rollouts)
         print(json.dumps(result, indent=2) if args.json else format_bench(result), flush=True)
         results.append(result)
     if args.markdown:
@@ -407,6 +407,11 @@ def _add_bench(sub) -> None:
     p.add_argument("--threads", type=_positive, default=2, help="torch threads of the Predictor")
     p.add_argument("--no-correction", action="store_true", help="time the raw network only")
     p.add_argument("--compile", action="store_true", help="torch.compile the network first (faster steps)")
+    p.add_argument("--rollouts", type=_positive, default=1,
+                   help="timed passes over the trajectory (statistics over all their steps; the page gives the range "
+                        "of each pass's median)")
+    p.add_argument("--cold", action="store_true",
+                   help="time the Predictor without the warm-up that the node runs before it serves")
     _add_self_contact(p, "its time is self_contact_ms")
     p.add_argument("--collision", action="store_true",
                    help="instead: collision detection (broad + filter + narrow) vs ipctk's CCD on one contact step")

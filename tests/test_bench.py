@@ -3,12 +3,13 @@
 import json
 import math
 
+import numpy as np
 import pytest
 
 from colgnn_core.cli import main
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import rmse_fraction
-from colgnn_core.evaluation.speed import bench, format_bench
+from colgnn_core.evaluation.speed import bench, format_bench, timed_rollout
 from colgnn_core.evaluation.speed_page import speed_markdown
 from tests.helpers import train_data as fx
 
@@ -32,9 +33,41 @@ def test_bench_reports_the_contract_fields():
     json.dumps(r)  # JSON-ready
 
 
-def test_rmse_fraction_by_hand():
-    import numpy as np
+def test_bench_warms_up_as_the_node_does_and_the_warm_up_changes_no_result():
+    """The timed steps follow a warm-up (the node's, before it serves) unless asked cold; the warm-up resets the
+    Predictor, so both runs publish the same shapes and counts."""
+    warm = bench(fx.SCENE, checkpoint=str(fx.trained_checkpoint("full")), frames=5, threads=1, rollouts=3)
+    cold = bench(fx.SCENE, checkpoint=str(fx.trained_checkpoint("full")), frames=5, threads=1, warm_up=False)
+    assert warm["warm_up_s"] > 0 and cold["warm_up_s"] == 0.0
+    assert warm["rollouts"] == 3 and len(warm["rollout_medians_ms"]) == 3 and cold["rollout_medians_ms"] == [
+        cold["total_ms"]["median"]]
+    assert min(warm["rollout_medians_ms"]) <= warm["total_ms"]["median"] <= max(warm["rollout_medians_ms"])
+    for key in ("relative_displacement_error", "rollout_rmse", "crossings_before_correction",
+                "crossings_after_correction", "fallbacks"):
+        assert warm[key] == cold[key], key
+    page = speed_markdown([warm], "colgnn bench")
+    assert "warmed up right before its timed steps" in page and "timed over 3 passes" in page
+    lo, hi = min(warm["rollout_medians_ms"]), max(warm["rollout_medians_ms"])
+    assert f"; passes {lo:.1f}-{hi:.1f} |" in page
+    assert "timed cold" in speed_markdown([cold], "colgnn bench --cold")
+    with pytest.raises(InputError, match="rollouts must be >= 1"):
+        bench(fx.SCENE, checkpoint=str(fx.trained_checkpoint("full")), frames=5, rollouts=0)
 
+
+def test_timed_passes_of_one_trajectory_publish_the_same_shapes():
+    """``bench --rollouts``: each pass restarts from frame 0, and the Predictor is deterministic, so every pass
+    times the same steps."""
+    from colgnn_core.evaluation.measure import family_poses
+    from colgnn_core.runtime.predictor import Predictor
+
+    p = Predictor.from_checkpoint(str(fx.trained_checkpoint("full")), threads=1)
+    poses = family_poses(p.scene, 6)
+    first, second = (timed_rollout(p, poses, p.rest_mesh) for _ in range(2))
+    np.testing.assert_array_equal(first["positions"], second["positions"])
+    assert first["crossings_before"] == second["crossings_before"]
+
+
+def test_rmse_fraction_by_hand():
     truth = np.zeros((2, 2, 3))
     pred = truth.copy()
     pred[1, 0] = [3.0, 4.0, 0.0]  # one of two vertices off by 5 m at frame 1

@@ -49,7 +49,7 @@ def timed_rollout(predictor, poses: np.ndarray, x0: np.ndarray) -> dict:
 
 def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, threads: int = 2,
           correction: bool = True, progress: bool = False, compile: bool = False,
-          self_contact: bool | None = None) -> dict:
+          self_contact: bool | None = None, warm_up: bool = True, rollouts: int = 1) -> dict:
     """Benchmark one scene. Returns the JSON fields of the ``colgnn bench`` contract.
 
     Args:
@@ -60,11 +60,21 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         compile: torch.compile the network first (see :class:`~colgnn_core.runtime.predictor.Predictor`).
         self_contact: run the self-contact stage (its time is ``self_contact_ms``; 0 when off); None: the
             scene's default, as the node runs it (:func:`~colgnn_core.runtime.predictor.self_contact_default`).
+        warm_up: :meth:`~colgnn_core.runtime.predictor.Predictor.warm_up` right before the timed steps, as the node
+            does before it serves (default). False times a cold Predictor: its first steps pay first-use costs that
+            the node pays during its warm-up.
+        rollouts: timed passes over the trajectory, each from its frame 0 (the shapes are the same each time); the
+            stage statistics are over every timed step, and ``rollout_medians_ms`` gives each pass's step median.
+            On a machine whose speed drifts by a quarter from one second to the next (this project's 2-core VM:
+            the banana's median read 17.0-25.7 ms in four runs of the same code), one pass of 19 steps (half a
+            second) samples one phase of the drift; several passes sample more of it.
     """
     if scene_name not in scene_names():
         raise InputError(f"unknown scene {scene_name!r}; valid scenes: {', '.join(scene_names())}")
     if frames < 3:
         raise InputError(f"frames must be >= 3, got {frames}")
+    if rollouts < 1:
+        raise InputError(f"rollouts must be >= 1, got {rollouts}")
     predictor = Predictor.from_checkpoint(checkpoint or scene_name, correction=correction, threads=threads,
                                           compile=compile, self_contact=self_contact, interior=REALTIME_INTERIOR)
     scene = predictor.scene
@@ -74,9 +84,12 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
 
     truth = simulate_sequence(scene, poses, progress=progress)
     ipc_ms = truth.extra["step_ms"][1:]
+    # Warmed up after the solver, right before the timed steps: the node warms up, then serves.
+    warm_up_s = predictor.warm_up() if warm_up else 0.0
 
-    timed = timed_rollout(predictor, poses, truth.object_positions[0])
-    stages = timed["stages"]
+    runs = [timed_rollout(predictor, poses, truth.object_positions[0]) for _ in range(rollouts)]
+    timed = runs[0]
+    stages = {k: [v for run in runs for v in run["stages"][k]] for k in timed["stages"]}
     err = rmse_fraction(timed["positions"], truth.object_positions, scene.bbox_diagonal())
     total = stats(stages["total"])
     ipc = stats(ipc_ms)
@@ -88,6 +101,8 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         "self_contact": bool(predictor.self_contact is not None),
         "frames": frames,
         "total_ms": total,
+        "rollouts": int(rollouts),
+        "rollout_medians_ms": [float(np.median(run["stages"]["total"])) for run in runs],
         "graph_ms": stats(stages["graph"]),
         "gnn_ms": stats(stages["gnn"]),
         "correction_ms": stats(stages["correction"]),
@@ -108,6 +123,7 @@ def bench(scene_name: str, checkpoint: str | None = None, frames: int = 40, thre
         # steps whose collision kernels ran on one thread: other processes held the cores (ContentionGuard)
         "kernel_threads_reduced_steps": int(predictor.kernel_guard.reduced_steps),
         "compiled": bool(predictor.compiled),
+        "warm_up_s": float(warm_up_s),  # 0.0: timed cold (no warm-up)
         "vertices": int(len(scene.object.vertices)),
         "surface_vertices": int(len(scene.object.surface_vertices)),
         "edges": int(len(scene.object.edges)),

@@ -23,17 +23,24 @@ def speed_row(r: dict) -> str:
     self_text = (f"{r['self_contact_ms']['median']:.1f} ({r['self_contact_ms']['p95']:.1f}) ms"
                  if r.get("self_contact") else "off")
     return (f"| `{r['scene']}` ({r['resolution']}) | {r['surface_vertices']:,} / {r['edges']:,} / {r['faces']:,} | "
-            f"**{t['median']:.1f}** ({t['p95']:.1f}) ms | {g['median']:.1f} / {n['median']:.1f} / "
+            f"**{t['median']:.1f}** ({t['p95']:.1f}) ms{_spread(r)} | {g['median']:.1f} / {n['median']:.1f} / "
             f"{c['median']:.1f} ms | {self_text} | {r['ipc_ms']['median']:,.0f} ms | **{r['speedup_vs_ipc']:.0f}×** | "
             f"{r['crossings_before_correction']} → {r['crossings_after_correction']} | {rel_text} | "
             f"{r['load_average_1min']:.1f} |")
+
+
+def _spread(r: dict) -> str:
+    """", passes 17.0-25.7" for a result of several timed passes (their step medians' range), else ""."""
+    medians = r.get("rollout_medians_ms") or []
+    return f"; passes {min(medians):.1f}-{max(medians):.1f}" if len(medians) > 1 else ""
 
 
 def busy_note(results: list[dict]) -> str:
     """A sentence naming the scenes whose collision kernels ran on 1 thread in some steps because tasks waited for a
     CPU (``kernel_threads_reduced_steps``; :class:`~colgnn_core.runtime.threads.ContentionGuard`), or
     "" when none did."""
-    busy = [f"`{r['scene']}` {r['kernel_threads_reduced_steps']} of {r['frames'] - 1} steps" for r in results
+    busy = [f"`{r['scene']}` {r['kernel_threads_reduced_steps']} of {r.get('rollouts', 1) * (r['frames'] - 1)} steps"
+            for r in results
             if r.get("kernel_threads_reduced_steps")]
     if not busy:
         return ""
@@ -47,9 +54,15 @@ def speed_markdown(results: list[dict], command: str, load: float | None = None)
     if not results:
         raise ValueError("no bench results")
     first = results[0]
-    settings = (f"{first['frames'] - 1} steps of each scene's family trajectory, {first['threads']} torch thread(s), "
+    passes = first.get("rollouts", 1)
+    settings = (f"{first['frames'] - 1} steps of each scene's family trajectory"
+                + (f", timed over {passes} passes (the median over all {passes * (first['frames'] - 1)} steps; "
+                   "\"passes\": the range of each pass's median)" if passes > 1 else "")
+                + f", {first['threads']} torch thread(s), "
                 f"{'compiled' if first.get('compiled') else 'eager'} network, correction "
-                f"{'on' if first['correction'] else 'off'}, the self-contact stage where its column gives a time")
+                f"{'on' if first['correction'] else 'off'}, the self-contact stage where its column gives a time, "
+                + ("the Predictor warmed up right before its timed steps, as the node does before it serves"
+                   if first.get("warm_up_s", 0.0) > 0 else "the Predictor timed cold (no warm-up: `--cold`)"))
     fewer = [f"`{r['scene']}`" for r in results if r.get("network_threads", r["threads"]) < r["threads"]]
     if fewer:  # the Predictor times its compiled network on 1 thread against the request when it warms up
         settings += f"; the network itself on 1 thread, faster there at warm-up, on {', '.join(fewer)}"
