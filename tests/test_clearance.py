@@ -84,3 +84,37 @@ def test_every_step_the_oracle_flags_is_flagged_on_a_raw_rollout():
         oracle += not free
         prev, prev_tool, prev_pose = r.positions, r.tool_vertices, r.tool_pose
     assert oracle > 0 and flagged >= oracle and flagged < len(poses) - 1
+
+
+def test_a_check_that_reuses_a_broad_phase_for_unchanged_primitives_finds_what_a_full_check_finds():
+    """``StepClearance.check(known=...)``: the broad phase of the same step ending elsewhere, for the primitives that
+    did not move since; the rest gets its own. Same violations, times and distances as a check from scratch, on
+    the raw network's press-and-drag with some vertices then moved (as the correction's pushes move them)."""
+    scene = load_scene("cylinder_banana", "ci")
+    pred = Predictor(make_model(scene, "noisy"), scene, correction=False, threads=1, max_deviation=0.004)
+    poses = hard_trajectories(scene, pred.max_translation, pace=0.9, drag=0.1, depth=0.6,
+                              kinds=["press and drag"])["press and drag"]
+    check = _clearance(scene.object.faces, len(scene.object.vertices), scene)
+    surf, tool = check.surface, check.tool_surface
+    rng = np.random.default_rng(0)
+    pred.reset(tool_pose=poses[0])
+    prev, prev_tool, prev_pose = pred.positions, scene.tool.world_vertices(poses[0]), poses[0]
+    compared = 0
+    for pose in poses[1:]:
+        r = pred.step(pose)
+        ref = step_candidates(prev, r.positions, surf, prev_tool, r.tool_vertices, tool,
+                              tool_bound=check.tool_bound, tool_pose_t0=prev_pose, tool_pose_t1=r.tool_pose,
+                              clearance=check.clearance)
+        for moved in (0, 5, 40):
+            x1 = r.positions.copy()
+            ids = rng.choice(surf.vertices, size=moved, replace=False)
+            x1[ids] += rng.normal(scale=5e-4, size=(moved, 3))
+            args = (prev, x1, prev_tool, r.tool_vertices, prev_pose, r.tool_pose)
+            full, reused = check.check(*args), check.check(*args, known=(ref, r.positions))
+            for kind in ("vf", "fv", "ee"):
+                np.testing.assert_array_equal(getattr(full, kind), getattr(reused, kind))
+                for stat in ("t", "d", "d0"):
+                    np.testing.assert_array_equal(getattr(full, stat)[kind], getattr(reused, stat)[kind])
+            compared += full.violations > 0
+        prev, prev_tool, prev_pose = r.positions, r.tool_vertices, r.tool_pose
+    assert compared > 0

@@ -462,7 +462,7 @@ class _NoClearance:
 
     clearance = 0.0
 
-    def check(self, *args):
+    def check(self, *args, **kwargs):
         return ClearanceResult()
 
 

@@ -31,8 +31,9 @@ import numpy as np
 from numba import njit, prange
 from numba.extending import register_jitable
 
-from colgnn_core.collision.broad_phase import Surface, ToolSDFBound, step_candidates
-from colgnn_core.collision.kernels import JOIN_CHUNKS, lerp, point_triangle_distance, row3, segment_distance
+from colgnn_core.collision.broad_phase import CandidatePairs, Surface, ToolSDFBound, step_candidates
+from colgnn_core.collision.kernels import (JOIN_CHUNKS, changed_rows, lerp, point_triangle_distance, row3, row_order,
+                                           segment_distance)
 
 __all__ = ["CLEARANCE", "CLEARANCE_RATIO", "ClearanceResult", "StepClearance", "clearance_pairs", "warm_up_clearance"]
 
@@ -167,13 +168,16 @@ class StepClearance:
         self.max_iterations = int(max_iterations)
         self._cache: dict = {}
 
-    def check(self, X0, X1, T0, T1, pose0, pose1) -> ClearanceResult:
+    def check(self, X0, X1, T0, T1, pose0, pose1, *, known: tuple[CandidatePairs, np.ndarray] | None = None
+              ) -> ClearanceResult:
         """The pairs of the linear step (object X0 -> X1 [N,3], tool T0 -> T1 [M,3] = the tool mesh at
-        ``pose0`` -> ``pose1``, m) that may come closer than the threshold."""
+        ``pose0`` -> ``pose1``, m) that may come closer than the threshold, each kind in row order.
+
+        ``known``: (candidates, X1_ref [N,3]): the broad phase with this clearance of the same step (X0, T0, T1, poses)
+        but ending at X1_ref. Its pairs of primitives whose vertices are the same in X1 stand (same positions, same
+        pairs); only primitives with a vertex that differs get a broad phase here."""
         X0, X1, T0, T1 = (np.ascontiguousarray(x, dtype=np.float64) for x in (X0, X1, T0, T1))
-        cand = step_candidates(X0, X1, self.surface, T0, T1, self.tool_surface, tool_bound=self.tool_bound,
-                               tool_pose_t0=pose0, tool_pose_t1=pose1, check=False, cache=self._cache,
-                               clearance=self.clearance)
+        cand = self._candidates(X0, X1, T0, T1, pose0, pose1, known)
         s, ts = self.surface, self.tool_surface
         ok, t, d, d0 = clearance_pairs(X0, X1, T0, T1, cand.vf, cand.fv, cand.ee, s.faces, s.edges, ts.faces,
                                         ts.edges, self.clearance, self.ratio, self.max_iterations)
@@ -183,10 +187,31 @@ class StepClearance:
             pairs = getattr(cand, kind)
             sl = slice(start, start + len(pairs))
             start += len(pairs)
-            bad = ~ok[sl]
+            bad = np.flatnonzero(~ok[sl])
+            bad = bad[row_order(pairs[bad])]  # the same order whichever way the candidates were gathered
             setattr(out, kind, pairs[bad])
             out.t[kind], out.d[kind], out.d0[kind] = t[sl][bad], d[sl][bad], d0[sl][bad]
         return out
+
+    def _candidates(self, X0, X1, T0, T1, pose0, pose1, known) -> CandidatePairs:
+        """The broad phase of :meth:`check`: from scratch, or ``known``'s pairs of unchanged primitives plus a broad
+        phase of the changed ones."""
+        def broad(active=None):
+            return step_candidates(X0, X1, self.surface, T0, T1, self.tool_surface, tool_bound=self.tool_bound,
+                                   tool_pose_t0=pose0, tool_pose_t1=pose1, check=False, cache=self._cache,
+                                   clearance=self.clearance, active=active)
+
+        if known is None:
+            return broad()
+        ref, X1_ref = known
+        moved = changed_rows(X1, np.ascontiguousarray(X1_ref, dtype=np.float64))
+        if not moved.any():
+            return ref
+        fresh = broad(moved)
+        F, E = self.surface.faces, self.surface.edges
+        keep = {"vf": ~moved[ref.vf[:, 0]], "fv": ~moved[F[ref.fv[:, 1]]].any(axis=1),
+                "ee": ~moved[E[ref.ee[:, 0]]].any(axis=1)}
+        return CandidatePairs(**{k: np.concatenate([getattr(ref, k)[keep[k]], getattr(fresh, k)]) for k in keep})
 
 
 def warm_up_clearance() -> None:

@@ -125,7 +125,7 @@ from colgnn_core.collision.broad_phase import Surface, ToolSDFBound, active_ring
 from colgnn_core.collision.clearance import CLEARANCE_RATIO, StepClearance, warm_up_clearance
 from colgnn_core.collision.kernels import (barycentric_clamped, box_join, changed_rows, longest_edge, map_pairs,
                                            point_triangle, prim_boxes, prims_meeting_box, row_distance, row3,
-                                           segment_distance, segment_params, sphere_bounds, vertex_boxes)
+                                           row_order, segment_distance, segment_params, sphere_bounds, vertex_boxes)
 from colgnn_core.collision.pipeline import CollisionDetector
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
@@ -308,7 +308,7 @@ class CollisionCorrector:
             if len(deg):
                 m[deg[self._pair_distance(k, pairs[deg], x1, T1) < self.margin]] = True
             sel = np.flatnonzero(m)
-            sel = sel[_row_order(pairs[sel])]  # sorted: the pushes must not depend on which pairs were examined
+            sel = sel[row_order(pairs[sel])]  # sorted: the pushes must not depend on which pairs were examined
             out[k] = pairs[sel]
             toi[k] = np.where(nr.hit[sel], nr.toi[sel], np.inf)
         return out, toi, n_hit
@@ -380,7 +380,7 @@ class CollisionCorrector:
         ee, ee_d, alpha, fv, fv_d, w3 = _proximity_pairs(
             x1, np.ascontiguousarray(T1), ids, sdf, self._proximity_level, lmax, trig, self.surface.edges,
             self.surface.faces, ve[0], ve[1], vf[0], vf[1], self.tool_surface.edges)
-        oe, of = _row_order(ee), _row_order(fv)
+        oe, of = row_order(ee), row_order(fv)
         ee, ee_d, alpha, fv, fv_d, w3 = ee[oe], ee_d[oe], alpha[oe], fv[of], fv_d[of], w3[of]
         vids, disps = [], []
         for ids, dist, w in ((self.surface.edges[ee[:, 0]], ee_d, np.stack([1.0 - alpha, alpha], axis=1)),
@@ -599,9 +599,16 @@ class CollisionCorrector:
         t_detect = t_resolve = t_clear = 0.0
         clean = False
         active = None  # bool [N]: the vertices whose primitives this pass examines (None: all; see below)
+        # The first pass's broad phase, with the clearance's growth, also serves the clearance check at the end
+        # (StepClearance.check ``known``): only primitives moved since then need a broad phase of their own.
+        grow = self.clearance.clearance if clearance and self.incremental else 0.0
+        known = None
         for it in range(self.max_iterations + 1):
             t = time.perf_counter()
-            res = self.detector.detect(x0, x1, T0, T1, pose0, pose1, check=False, active=active)
+            res = self.detector.detect(x0, x1, T0, T1, pose0, pose1, check=False, active=active,
+                                       clearance=grow if it == 0 else 0.0)
+            if it == 0 and grow > 0:
+                known = (res.candidates, raw)  # x1 is still the proposal here: raw is its copy
             hits, toi, _ = self._hits(res, x1, T1)
             t_detect += time.perf_counter() - t
             out.iterations = it + 1
@@ -617,7 +624,7 @@ class CollisionCorrector:
                 t_resolve += time.perf_counter() - t
                 if clean and clearance:
                     t = time.perf_counter()
-                    clean = self.clearance.check(x0, x1, T0, T1, pose0, pose1).violations == 0
+                    clean = self.clearance.check(x0, x1, T0, T1, pose0, pose1, known=known).violations == 0
                     t_clear += time.perf_counter() - t
                 break
             start = x1.copy()
@@ -636,7 +643,7 @@ class CollisionCorrector:
                     clean = True
                     break
                 t = time.perf_counter()
-                cl = self.clearance.check(x0, x1, T0, T1, pose0, pose1)
+                cl = self.clearance.check(x0, x1, T0, T1, pose0, pose1, known=known)
                 if cl.violations == 0:
                     t_clear += time.perf_counter() - t
                     clean = True
@@ -800,11 +807,6 @@ def _barycentric_clamped_kernel(p, a, b, c):
     for i in range(p.shape[0]):
         w[i, 0], w[i, 1], w[i, 2] = barycentric_clamped(row3(p, i), row3(a, i), row3(b, i), row3(c, i))
     return w
-
-
-def _row_order(pairs: np.ndarray) -> np.ndarray:
-    """Indices [K] that sort the rows of ``pairs`` [K,2] lexicographically."""
-    return np.lexsort((pairs[:, 1], pairs[:, 0])) if len(pairs) > 1 else np.arange(len(pairs))
 
 
 def _rows(*arrays):

@@ -448,6 +448,12 @@ def longest_edge(X, edges):
     return m
 
 
+def row_order(pairs: np.ndarray) -> np.ndarray:
+    """Indices [K] that sort the rows of ``pairs`` [K,2] lexicographically (a canonical order: pushes merged from
+    pairs in this order do not depend on which other pairs a pass examined)."""
+    return np.lexsort((pairs[:, 1], pairs[:, 0])) if len(pairs) > 1 else np.arange(len(pairs))
+
+
 @njit(cache=True)
 def changed_rows(A, B):
     """Bool [N]: rows of A [N,3] that differ from B [N,3] in any entry (as ``np.any(A != B, axis=1)``, without

@@ -191,9 +191,12 @@ class CollisionDetector:
         return self.object_surface, self.tool_surface
 
     def detect(self, object_t0, object_t1, tool_t0, tool_t1, tool_pose_t0=None, tool_pose_t1=None, *,
-               narrow: bool = True, check: bool = True, active: np.ndarray | None = None) -> StepCollisions:
+               narrow: bool = True, check: bool = True, active: np.ndarray | None = None,
+               clearance: float = 0.0) -> StepCollisions:
         """Run the pipeline on positions [N,3] / [M,3] at t and t+1 (m). Poses enable SDF culling.
-        ``active``: bool [N] or None (all): only object primitives with an active vertex take part."""
+        ``active``: bool [N] or None (all): only object primitives with an active vertex take part.
+        ``clearance`` (m): the broad phase keeps every pair that may come that close (a superset of the touching
+        ones, so the same crossings; its ``candidates`` then serve a clearance check of the same step)."""
         t_start = time.perf_counter()
         if check:
             object_t0 = check_positions(object_t0, self.object_surface.n_vertices, "object_t0")
@@ -202,7 +205,7 @@ class CollisionDetector:
             tool_t1 = check_positions(tool_t1, self.tool_surface.n_vertices, "tool_t1")
         cand = step_candidates(object_t0, object_t1, self.object_surface, tool_t0, tool_t1, self.tool_surface,
                                tool_bound=self.tool_bound, tool_pose_t0=tool_pose_t0, tool_pose_t1=tool_pose_t1,
-                               check=check, cache=self._cache, active=active)
+                               check=check, cache=self._cache, active=active, clearance=clearance)
         t_broad = time.perf_counter()
         kinds = ("vf", "fv", "ee")
         quads, is_ee = pair_quads(cand, *self._surfaces())
