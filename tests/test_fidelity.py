@@ -360,3 +360,32 @@ def test_predictor_flags_a_shape_beyond_the_training_deformation():
         p = Predictor(replace(loaded, extra=dict(extra, domain_max_deviation=dev)), scene, threads=1)
         flags[dev] = sum(p.step(pose).out_of_domain for pose in contact[1:])
     assert flags[10.0] == 0 and flags[1e-5] > 0
+
+
+def test_drag_across_sends_the_family_s_drags_onto_the_flanks():
+    """``family.drag_across``: that share of the drags runs across the object's short side toward the nearer flank
+    (``drag_across_length`` m), so a long object is pressed on its flanks too, not mostly on its top. Without the
+    key the draws are the family's own (no extra random number). Only drags here, every pose inside the workspace."""
+    base = load_scene("cylinder_banana", "ci")
+    assert "drag_across" not in base.family
+    cfg = copy.deepcopy(base.config)
+    cfg["family"]["stroke_weights"] = [0.0, 1.0, 0.0]
+    plain = build_scene("cylinder_banana", "ci", cfg, SCENES_DIR)
+    cfg["family"]["drag_across"] = 0.0
+    zero = build_scene("cylinder_banana", "ci", cfg, SCENES_DIR)
+    cfg["family"]["drag_across"] = 1.0
+    cfg["family"]["drag_across_length"] = [0.04, 0.05]
+    across = build_scene("cylinder_banana", "ci", cfg, SCENES_DIR)
+    seeds = split_seeds("train", 10)
+    np.testing.assert_array_equal(sample_poses(plain, seeds[0], 60), sample_poses(zero, seeds[0], 60))
+    lo, hi = base.object_bbox()
+    half = 0.5 * (hi[1] - lo[1])
+    flank = {}
+    for name, scene in (("plain", plain), ("across", across)):
+        poses = np.concatenate([sample_poses(scene, s, 60, clip=False) for s in seeds])
+        assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
+        v = np.asarray(scene.object.vertices)
+        pressing = np.array([scene.tool.sdf(v, p).min() < 0 for p in poses])
+        beyond = np.abs(poses[:, 1] - 0.5 * (lo[1] + hi[1])) > half  # the roller's centre past the banana's side
+        flank[name] = int((pressing & beyond).sum())
+    assert flank["across"] >= 2 * flank["plain"] > 0, flank  # measured at ci: 128 against 48 pressing frames
