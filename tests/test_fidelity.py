@@ -362,6 +362,12 @@ def test_predictor_flags_a_shape_beyond_the_training_deformation():
     assert flags[10.0] == 0 and flags[1e-5] > 0
 
 
+def _pressing(scene, poses: np.ndarray) -> np.ndarray:
+    """Bool [T]: the tool at each pose [T,7] reaches inside the object's rest shape."""
+    v = np.asarray(scene.object.vertices)
+    return np.array([scene.tool.sdf(v, p).min() < 0 for p in poses])
+
+
 def test_drag_across_sends_the_family_s_drags_onto_the_flanks():
     """``family.drag_across``: that share of the drags runs across the object's short side toward the nearer flank
     (``drag_across_length`` m), so a long object is pressed on its flanks too, not mostly on its top. Without the
@@ -384,8 +390,7 @@ def test_drag_across_sends_the_family_s_drags_onto_the_flanks():
     for name, scene in (("plain", plain), ("across", across)):
         poses = np.concatenate([sample_poses(scene, s, 60, clip=False) for s in seeds])
         assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
-        v = np.asarray(scene.object.vertices)
-        pressing = np.array([scene.tool.sdf(v, p).min() < 0 for p in poses])
+        pressing = _pressing(scene, poses)
         beyond = np.abs(poses[:, 1] - 0.5 * (lo[1] + hi[1])) > half  # the roller's centre past the banana's side
         flank[name] = int((pressing & beyond).sum())
     assert flank["across"] >= 2 * flank["plain"] > 0, flank  # measured at ci: 128 against 48 pressing frames
@@ -393,14 +398,14 @@ def test_drag_across_sends_the_family_s_drags_onto_the_flanks():
 
 @pytest.mark.slow
 def test_banana_full_family_presses_both_flanks():
-    """The banana's full-resolution family (its shipped model's data) sets ``drag_across``, so its 48 training
-    sequences press with the roller's centre beyond 45 mm from the middle line on both sides: drawn in random
-    directions they did so in 0 and 5 of 720 pressing frames, and the held-out family seed 5, whose roller ends there,
-    scored twice the others' error (docs/FIDELITY.md, session 35). Measured: 46 and 60 of 794. About 45 s."""
+    """The banana's full-resolution family (what its full-resolution models train on) sets ``drag_across``, so its
+    48 training sequences press with the roller's centre beyond 45 mm from the middle line on both sides: drawn in
+    random directions they did so in 0 and 5 of 720 pressing frames, and the held-out family seed 5, whose roller
+    ends there, scored twice the others' error (docs/FIDELITY.md, session 35). Measured: 46 and 60 of 794. About
+    45 s."""
     scene = load_scene("cylinder_banana", "full")
     assert scene.family["drag_across"] > 0
     poses = np.concatenate([sample_poses(scene, s, 60) for s in split_seeds("train", 48)])
-    v = np.asarray(scene.object.vertices)
-    pressing = np.array([scene.tool.sdf(v, p).min() < 0 for p in poses])
+    pressing = _pressing(scene, poses)
     assert (pressing & (poses[:, 1] < -0.045)).sum() >= 30
     assert (pressing & (poses[:, 1] > 0.045)).sum() >= 30
