@@ -69,6 +69,9 @@ class ModelConfig:
                                       # (sim.tip_prior.TipSidePrior: a pocket as wide as the cone)
     contact_prior: bool = False       # quasi_static only: the same with sim.contact_prior (a frictionless smooth
                                       # tool holds every face it reaches on its surface)
+    prior_mesh: str = ""              # the prior's mesh: "" the scene's own; a resolution ("ci") solves it on the
+                                      # scene's mesh there and carries it onto the graph's nodes (sim.coarse_prior;
+                                      # the full banana's contact prior: 280 ms a step on a long contact, at ci 1 ms)
 
     @property
     def prior_kind(self) -> str | None:
@@ -266,6 +269,9 @@ class Simulator(nn.Module):
             raise InputError("tip_prior and contact_prior exclude each other: a model adds one physics prior")
         if config.side_contact and not config.tip_prior:
             raise InputError("side_contact needs tip_prior (it widens the sharp tip's pocket to the cone)")
+        if config.prior_mesh and not config.prior_kind:
+            raise InputError("prior_mesh needs a physics prior (contact_prior or tip_prior): it says where that "
+                             "prior is solved")
         if config.prior_kind and not config.quasi_static:
             raise InputError(f"{config.prior_kind}_prior needs quasi_static (the prior is a displacement from the "
                              "settled rest)")

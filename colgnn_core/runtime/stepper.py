@@ -89,8 +89,10 @@ class RawStepper:
         self._lift = None          # built on first use (the elastic one factorises a matrix: seconds at full)
         # A model's physics prior: built here, not on the first step (it factorises the stiffness: 1.3 s at full
         # cone_bunny, which would otherwise stall the first published step).
-        kind = getattr(getattr(model, "config", None), "prior_kind", None)
-        self._physics = physics_prior(kind, scene, self.rest_mesh, self.template.object_nodes) if kind else None
+        config = getattr(model, "config", None)
+        kind = getattr(config, "prior_kind", None)
+        self._physics = (physics_prior(kind, scene, self.rest_mesh, self.template.object_nodes,
+                                       mesh=getattr(config, "prior_mesh", "")) if kind else None)
         self._contact_next: TipContact | None = None  # the prior's state after the last proposal, kept by commit
         self.clamped = 0  # nodes capped in the last step
         # torch threads while the network runs (None: the process's count); the Predictor times it at warm-up
