@@ -183,23 +183,32 @@ def test_the_correction_budget_comes_from_the_scene_and_an_explicit_one_wins(sce
             _pred(wrong)
 
 
-def test_the_push_rule_comes_from_the_scene(scene):
-    """knife_torus merges the pushes on a vertex by the largest (its blade's two sides cancel in a mean: the scene
-    TOML); the other scenes average; the Predictor's tool pass uses the scene's rule; a bad value is refused by
-    name."""
+@pytest.mark.parametrize("key, values, shipped, bad", [
+    # knife_torus merges the pushes on a vertex by the largest (its blade's two sides cancel in a mean); the others
+    # average.
+    ("push_rule", "mean, largest", {"knife_torus": "largest"}, ("max", 1, True)),
+    # cylinder_banana keeps the smaller of two corrections (its roller's rim folds the flank when every vertex is
+    # projected); the others project every vertex.
+    ("project", "all, least", {"cylinder_banana": "least"}, ("unpushed", 1, None)),
+])
+def test_the_tool_pass_rules_come_from_the_scene(scene, key, values, shipped, bad):
+    """Each scene's ``[correction]`` rule as its TOML sets it (the first value elsewhere); the Predictor's tool pass
+    uses the scene's rule; a bad value is refused by name."""
     import dataclasses
 
-    from colgnn_core.runtime.predictor import correction_push_rule
+    from colgnn_core.runtime import predictor as P
     from colgnn_core.scenes import load_scene, scene_names
 
-    assert {n: correction_push_rule(load_scene(n, "ci")) for n in scene_names()} == {
-        "cone_bunny": "mean", "knife_torus": "largest", "sphere_mat": "mean", "cylinder_banana": "mean"}
-    assert _pred(scene).corrector.push_rule == "mean"
-    asking = dataclasses.replace(scene, config={**scene.config, "correction": {"push_rule": "largest"}})
-    assert _pred(asking).corrector.push_rule == "largest"
-    for bad in ("max", 1, True):
-        wrong = dataclasses.replace(scene, config={**scene.config, "correction": {"push_rule": bad}})
-        with pytest.raises(InputError, match="correction.push_rule must be one of mean, largest"):
+    read = {"push_rule": P.correction_push_rule, "project": P.correction_project}[key]
+    default, other = values.split(", ")
+    names = scene_names()
+    assert {n: read(load_scene(n, "full")) for n in names} == {n: shipped.get(n, default) for n in names}
+    assert getattr(_pred(scene).corrector, key) == default
+    asking = dataclasses.replace(scene, config={**scene.config, "correction": {key: other}})
+    assert getattr(_pred(asking).corrector, key) == other
+    for value in bad:
+        wrong = dataclasses.replace(scene, config={**scene.config, "correction": {key: value}})
+        with pytest.raises(InputError, match=f"correction.{key} must be one of {values}"):
             _pred(wrong)
 
 

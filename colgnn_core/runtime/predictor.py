@@ -44,7 +44,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from colgnn_core.collision.correction import DEFAULT_MAX_ITERATIONS, MAX_ROTATION, PUSH_RULES, CollisionCorrector
+from colgnn_core.collision.correction import (DEFAULT_MAX_ITERATIONS, MAX_ROTATION, PROJECT_RULES, PUSH_RULES,
+                                              CollisionCorrector)
 from colgnn_core.collision.kernels import use_kernel_threads
 from colgnn_core.collision.self_contact import SelfContact
 from colgnn_core.errors import InputError
@@ -192,6 +193,16 @@ def correction_push_rule(scene) -> str:
     return value
 
 
+def correction_project(scene) -> str:
+    """Which vertices the tool pass projects out of the tool for ``scene``: its TOML's ``[correction] project`` (or
+    ``[correction.<resolution>]``'s), else ``all`` (:class:`~colgnn_core.collision.correction.CollisionCorrector`).
+    InputError when the value is not one of PROJECT_RULES."""
+    value = correction_table(scene).get("project", "all")
+    if value not in PROJECT_RULES:
+        raise InputError(f"{scene.name}: correction.project must be one of {', '.join(PROJECT_RULES)}, got {value!r}")
+    return value
+
+
 def correction_table(scene) -> dict:
     """The scene TOML's ``[correction]`` table at the scene's resolution: a ``[correction.full]`` or
     ``[correction.ci]`` sub-table overrides the common keys there (:func:`~colgnn_core.scenes.scene.at_resolution`)."""
@@ -333,7 +344,8 @@ class Predictor:
         if max_iterations is None:
             max_iterations = correction_iterations(scene)
         self.corrector = (CollisionCorrector(tpl.surface_faces, tpl.num_object_nodes, scene.tool, scene.dhat,
-                                             max_iterations=max_iterations, push_rule=correction_push_rule(scene))
+                                             max_iterations=max_iterations, push_rule=correction_push_rule(scene),
+                                             project=correction_project(scene))
                           if self.correction else None)
         if self_contact is None:
             self_contact = self_contact_default(scene)
