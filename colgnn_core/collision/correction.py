@@ -681,7 +681,7 @@ class CollisionCorrector:
             vid, disp = self._pushes(hits, toi, x0, x1, T0, T1, it)
             if len(vid):
                 x1[vid] += disp
-            held = np.unique(vid) if hold_pushed and len(vid) else None
+            held = vid if hold_pushed and len(vid) else None  # merge_pushes: sorted, unique
             pushed, n = self._project(x1, pose1, None if len(vid) or n_close else sdf, ids, held)
             n_held += n
             t_resolve += time.perf_counter() - t
