@@ -185,21 +185,22 @@ def correction_iterations(scene) -> int:
 
 def correction_push_rule(scene) -> str:
     """How the tool pass merges several pushes on one vertex for ``scene``: its TOML's ``[correction] push_rule``
-    (or ``[correction.<resolution>]``'s), else ``mean`` (:func:`~colgnn_core.collision.correction.merge_pushes`).
-    InputError when the value is not one of PUSH_RULES."""
-    value = correction_table(scene).get("push_rule", "mean")
-    if value not in PUSH_RULES:
-        raise InputError(f"{scene.name}: correction.push_rule must be one of {', '.join(PUSH_RULES)}, got {value!r}")
-    return value
+    (or ``[correction.<resolution>]``'s), else ``mean`` (:func:`~colgnn_core.collision.correction.merge_pushes`)."""
+    return correction_choice(scene, "push_rule", PUSH_RULES)
 
 
 def correction_project(scene) -> str:
     """Which vertices the tool pass projects out of the tool for ``scene``: its TOML's ``[correction] project`` (or
-    ``[correction.<resolution>]``'s), else ``all`` (:class:`~colgnn_core.collision.correction.CollisionCorrector`).
-    InputError when the value is not one of PROJECT_RULES."""
-    value = correction_table(scene).get("project", "all")
-    if value not in PROJECT_RULES:
-        raise InputError(f"{scene.name}: correction.project must be one of {', '.join(PROJECT_RULES)}, got {value!r}")
+    ``[correction.<resolution>]``'s), else ``all`` (:class:`~colgnn_core.collision.correction.CollisionCorrector`)."""
+    return correction_choice(scene, "project", PROJECT_RULES)
+
+
+def correction_choice(scene, key: str, choices: tuple[str, ...]) -> str:
+    """The scene's ``[correction] key`` (:func:`correction_table`), else the first of ``choices``. InputError, naming
+    the key and the choices, when the value is not one of them."""
+    value = correction_table(scene).get(key, choices[0])
+    if value not in choices:
+        raise InputError(f"{scene.name}: correction.{key} must be one of {', '.join(choices)}, got {value!r}")
     return value
 
 
