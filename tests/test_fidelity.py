@@ -285,16 +285,18 @@ def test_a_pressing_window_is_drawn_longer_while_a_slow_first_travel_has_not_rea
     assert start > FIRST_TRAVEL_FRAMES and np.array_equal(longer[start:start + 14], poses)
 
 
-def test_knife_torus_plunges_reach_the_workspace_floor():
+@pytest.mark.parametrize("name, top, deeper", [
+    ("knife_torus", 0.08, 0.02),       # the tube's top; some plunge goes 2 cm below the deepest press
+    ("sphere_mat", 0.06127, 0.001),    # the sphere's centre where it touches the mat; 1 mm below the deepest press
+])
+def test_plunges_reach_the_workspace_floor(name, top, deeper):
     """The family's plunges go down to the workspace floor (``plunge_depth``), deeper than any press, so a fast
     plunge to the deepest valid pose is inside the training data; every pose stays inside the workspace."""
-    scene = load_scene("knife_torus", "full")
+    scene = load_scene(name, "full")
     assert np.max(scene.family["plunge_depth"]) > np.max(scene.family["depth"])
     poses = np.concatenate([sample_poses(scene, s, 60, clip=False) for s in split_seeds("train", 30)])
     assert np.all((poses[:, :3] >= scene.workspace_min - 1e-12) & (poses[:, :3] <= scene.workspace_max + 1e-12))
-    top = 0.08  # the tube's top: the presses stop at most family.depth (2 cm) below it
-    assert poses[:, 2].min() < top - np.max(scene.family["depth"]) - 0.02  # some plunge goes 2 cm deeper
-
+    assert poses[:, 2].min() < top - np.max(scene.family["depth"]) - deeper
 
 
 def test_drag_depth_sends_the_family_s_drags_deeper():
