@@ -114,6 +114,7 @@ def _draw_frame(ax, seq: Sequence, frame: int, scale: float, limits: tuple[np.nd
 def _draw_section(ax, seq: Sequence, frame: int, plane, window: tuple[np.ndarray, np.ndarray]) -> None:
     """Cross-section through the contact: object outline (blue), tool outline (grey), crossings in red."""
     from matplotlib.collections import LineCollection  # lazy: matplotlib is heavy and only the pictures need it
+    from matplotlib.ticker import MaxNLocator
 
     origin, normal, axis = plane
     to2d = lambda seg: np.stack([(seg - origin) @ axis, seg[..., 2]], axis=-1)
@@ -126,6 +127,7 @@ def _draw_section(ax, seq: Sequence, frame: int, plane, window: tuple[np.ndarray
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.tick_params(labelsize=6)
+    ax.xaxis.set_major_locator(MaxNLocator(4))  # a 20 cm window at the default density ran its labels together
 
 
 def _section_window(seqs: list[Sequence], frames: list[int], planes) -> tuple[np.ndarray, np.ndarray]:
