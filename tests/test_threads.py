@@ -234,3 +234,59 @@ def test_compiled_predictor_times_its_network_threads_and_gives_the_same_steps()
         assert np.abs(p.step(pose).positions - a).max() < 1e-5 * scale
         assert torch.get_num_threads() == 2
     assert counters["frames"]["ok"] == compiled_frames
+
+
+def test_torch_threads_sets_the_count_for_a_block_and_restores_it_even_on_error():
+    import torch
+
+    from colgnn_core.runtime.threads import torch_threads
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with torch_threads(1):
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError, match="inside"):
+            with torch_threads(1):
+                raise RuntimeError("inside")
+        assert torch.get_num_threads() == 2
+        with torch_threads(None):  # None: the count as it is
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_a_predictor_on_2_threads_builds_its_graph_on_1_and_steps_as_on_2():
+    """The step's small tensor operations run on STEP_THREADS (1): on a shared 2-core machine each 2-thread OpenMP
+    region of graph building waits milliseconds for a parked worker (docs/SPEED.md, session 43). The network keeps
+    its own count, the process is left at 2, and the steps are the same as with everything on 2 threads."""
+    import torch
+
+    from colgnn_core.evaluation.measure import family_poses
+    from colgnn_core.runtime.predictor import Predictor
+    from colgnn_core.runtime.stepper import STEP_THREADS
+
+    assert STEP_THREADS == 1
+    scene = fx.scene()
+    before = torch.get_num_threads()
+    try:
+        p = Predictor.from_checkpoint(str(fx.trained_checkpoint("full")), threads=2)
+        seen = {"graph": [], "network": []}
+        build, network = p.model.build_graph, p.model.network
+        p.model.build_graph = lambda frame: (seen["graph"].append(torch.get_num_threads()), build(frame))[1]
+        p.model.network = lambda *a, **k: (seen["network"].append(torch.get_num_threads()), network(*a, **k))[1]
+        poses = family_poses(scene, 5)
+        steps = {}
+        for threads in (STEP_THREADS, None):
+            p.net.step_threads = threads
+            p.reset(tool_pose=poses[0])
+            steps[threads] = [p.step(pose).positions for pose in poses[1:]]
+            assert torch.get_num_threads() == 2
+        n = len(poses) - 1
+        assert seen["graph"][:n] == [1] * n and seen["graph"][n:] == [2] * n
+        assert seen["network"] == [2] * (2 * n)  # not timed (no warm-up): the Predictor's count
+        for a, b in zip(steps[STEP_THREADS], steps[None]):
+            assert np.abs(a - b).max() < 1e-6 * scene.bbox_diagonal()
+    finally:
+        torch.set_num_threads(before)

@@ -25,8 +25,18 @@ from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.interior import check_interior_kind, interior_lift
+from colgnn_core.runtime.threads import torch_threads
 from colgnn_core.sim.prior import physics_prior
 from colgnn_core.sim.tip_prior import TipContact
+
+
+# Torch threads for the step's small tensor operations (graph features, integration, caps): arrays of a few thousand
+# rows, which one thread handles in microseconds. On 2 threads every operation opens an OpenMP region that waits for
+# its second worker, and on a shared 2-core machine a parked worker costs milliseconds (one concatenation of the
+# banana's node features: 0.02 ms alone, 5-12 ms beside a busy process). The banana's step median at 2 threads, in
+# one process alternating the two settings (docs/FIDELITY.md, session 43): quiet 16.7 ms against 16.1 with these
+# operations on 2 threads; beside one busy process 14.7 against 19.3; beside a 2-process fit 20.2 against 55.2.
+STEP_THREADS = 1
 
 
 class Stepper(Protocol):
@@ -97,6 +107,7 @@ class RawStepper:
         self.clamped = 0  # nodes capped in the last step
         # torch threads while the network runs (None: the process's count); the Predictor times it at warm-up
         self.network_threads: int | None = None
+        self.step_threads: int | None = STEP_THREADS  # ... and around it (None: the process's count)
         self.state: StepperState | None = None
 
     def reset(self, x0_graph: np.ndarray, pose0: np.ndarray) -> None:
@@ -112,32 +123,28 @@ class RawStepper:
         """
         t0 = time.perf_counter()
         s = self.state
-        frame = Frame(s.x_prev, s.x_t, s.tool_t, tool_next, pose_next, self._prior(pose_next))
-        if hasattr(self.model, "build_graph") and hasattr(self.model, "network"):
-            graph = self.model.build_graph(frame)
-            self.world_edges = int(graph.world.senders.shape[0])
-            t1 = time.perf_counter()
-            pred_norm, _ = self.network(graph)
-            x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev, frame.prior)
-        else:  # models without the graph pieces (the subspace baseline)
-            self.world_edges = None
-            t1 = t0
-            x_next = self.model.predict(frame)
-        t2 = time.perf_counter()
-        self.last_ms = {"graph": 1e3 * (t1 - t0), "gnn": 1e3 * (t2 - t1)}
-        return self._capped(x_next)
+        outer = torch.get_num_threads()
+        with torch_threads(self.step_threads):
+            frame = Frame(s.x_prev, s.x_t, s.tool_t, tool_next, pose_next, self._prior(pose_next))
+            if hasattr(self.model, "build_graph") and hasattr(self.model, "network"):
+                graph = self.model.build_graph(frame)
+                self.world_edges = int(graph.world.senders.shape[0])
+                t1 = time.perf_counter()
+                pred_norm, _ = self.network(graph, outer)
+                x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev, frame.prior)
+            else:  # models without the graph pieces (the subspace baseline)
+                self.world_edges = None
+                t1 = t0
+                x_next = self.model.predict(frame)
+            t2 = time.perf_counter()
+            self.last_ms = {"graph": 1e3 * (t1 - t0), "gnn": 1e3 * (t2 - t1)}
+            return self._capped(x_next)
 
-    def network(self, graph) -> tuple[torch.Tensor, torch.Tensor]:
+    def network(self, graph, threads: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The model's network on ``graph`` (``Simulator.network``), on ``network_threads`` torch threads where
-        that is set; the process's count is restored after."""
-        n, before = self.network_threads, torch.get_num_threads()
-        if n is None or n == before:
+        that is set, else on ``threads`` (None: the current count); the count is restored after."""
+        with torch_threads(self.network_threads or threads):
             return self.model.network(graph)
-        torch.set_num_threads(n)
-        try:
-            return self.model.network(graph)
-        finally:
-            torch.set_num_threads(before)
 
     def _prior(self, pose_next: np.ndarray) -> torch.Tensor | None:
         """The physics prior's displacement [N,3] at ``pose_next`` for a model with one (else None); the prior's

@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from statistics import median
 
+import torch
+
 __all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us",
-           "fastest_thread_count", "other_runnable_tasks"]
+           "fastest_thread_count", "other_runnable_tasks", "torch_threads"]
 
 QUIET_SAMPLES = 10     # uncontended calls in a row before the kernels get their threads back (0.4 s at 25 Hz)
 STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
@@ -36,6 +39,20 @@ def auto_threads(cpu_count: int | None = None) -> int:
     """
     n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
     return 1 if n <= 4 else min(4, n // 2)
+
+
+@contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run the block on ``n`` torch threads (None: the process's count), restoring the count after."""
+    before = torch.get_num_threads()
+    if n is None or n == before:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def fastest_thread_count(run: Callable[[], object], requested: int, set_threads: Callable[[int], object],
