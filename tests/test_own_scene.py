@@ -296,3 +296,14 @@ def test_fit_trains_evaluates_and_reports_within_its_budget():
     again = own.colgnn("fit", "pebble", "--minutes", str(own.FIT_MINUTES), "--quiet")
     assert again.returncode == 0, again.stderr[-2000:]
     assert json.loads((d / "pebble-fit" / "ci" / "plan.json").read_text()) == plan
+
+
+def test_training_takes_the_time_that_the_data_left_unused():
+    from colgnn_core.evaluation.fit import plan_budget, training_share
+
+    plan = plan_budget(30)
+    plan.shares_s = {"data": 823.0, "train": 674.0, "evaluate": 270.0}  # session 43's cow, after its first sequences
+    # the data took 5 of its 14 minutes: 1,500 s are left, of which the evaluation keeps its 270
+    assert training_share(plan, 1500.0) == pytest.approx(1230.0)
+    # data that overran its share does not take training's planned time away
+    assert training_share(plan, 700.0) == pytest.approx(674.0)
