@@ -303,8 +303,8 @@ def fit_variant(scene) -> str:
 def training_share(plan: FitPlan, left_s: float) -> float:
     """The seconds training gets when it starts with ``left_s`` of the budget left: its planned share, or all but
     the evaluation's share when the data finished early. The data's share is set from the first sequences' cost,
-    and they ran while the machine was busiest (session 43's cow: 10.7 s a sequence planned 155 sequences in 14 min;
-    they took 5, and training would have left half of a 30-minute budget unused)."""
+    which can run slower than the rest (session 43's cow: 10.7 s a sequence beside other jobs planned 155 sequences
+    in 14 min; they ran faster, and the fit ended after 15.6 of its 30 minutes)."""
     return max(float(plan.shares_s["train"]), float(left_s) - float(plan.shares_s["evaluate"]))
 
 
