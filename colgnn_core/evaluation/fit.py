@@ -320,6 +320,7 @@ def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, 
             plan.notes.append(f"the data finished {grown - share:.0f} s early: training gets {grown:.0f} s")
             plan.shares_s["data"] = round(used, 1)  # what it took: the shares still add up to the budget
             share = plan.shares_s["train"] = round(grown, 1)
+            _say(prog, plan.notes[-1], quiet)
         prog.set("train", "measuring the step rate")
         probe = work / "calibration.pt"
         cfg = TrainConfig(steps=CALIBRATION_STEPS, warmup_steps=3, log_every=5, checkpoint_every=10_000)
