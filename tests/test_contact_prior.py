@@ -69,19 +69,22 @@ def test_the_prior_is_a_function_of_the_pose_and_deeper_moves_more(mat):
     np.testing.assert_array_equal(prior.rollout(np.stack([_press(scene, rest, 0.002)] * 2))[1], shallow)
 
 
-def test_a_contact_prior_model_runs_the_prior_behind_the_stepper_as_in_training(mat):
+@pytest.mark.parametrize("compliance", ["", "modal"])
+def test_a_contact_prior_model_runs_the_prior_behind_the_stepper_as_in_training(mat, compliance, tmp_path,
+                                                                                monkeypatch):
     from colgnn_core.runtime.models import PriorModel
     from colgnn_core.runtime.stepper import RawStepper
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))   # the modal set-up's disk cache
     scene, rest, _ = mat
     template = template_from_scene(scene, surface_only=True)
     config = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True,
-                         contact_prior=True)
+                         contact_prior=True, prior_compliance=compliance)
     assert config.prior_kind == "contact"
     stepper = RawStepper(PriorModel(template, rest[template.object_nodes], config), scene, rest_mesh=rest)
     poses = np.stack([_press(scene, rest, d, (0.02, -0.01)) for d in (-0.01, 0.0, 0.003, 0.006, -0.01)])
     stepper.reset(rest[template.object_nodes], poses[0])
-    expect = physics_prior("contact", scene, rest, template.object_nodes).rollout(poses)
+    expect = physics_prior("contact", scene, rest, template.object_nodes, compliance=compliance).rollout(poses)
     for t in range(1, len(poses)):
         np.testing.assert_allclose(stepper.step(poses[t]) - rest[template.object_nodes], expect[t], atol=1e-12)
     assert np.abs(expect[3]).max() > 0.004
@@ -90,7 +93,7 @@ def test_a_contact_prior_model_runs_the_prior_behind_the_stepper_as_in_training(
     tool = torch.from_numpy(scene.tool.world_vertices(poses[3]))
     prior = torch.from_numpy(expect[3])
     sim = Simulator(template, config)
-    plain = Simulator(template, replace(config, contact_prior=False))
+    plain = Simulator(template, replace(config, contact_prior=False, prior_compliance=""))
     widths = [s.build_graph(Frame(x, x, tool, tool, poses[3], prior)).node_features.shape[1] for s in (sim, plain)]
     assert widths[0] == widths[1] + PRIOR_FEATURES
     pred, _ = sim.network(sim.build_graph(Frame(x, x, tool, tool, poses[3], prior)))

@@ -72,6 +72,9 @@ class ModelConfig:
     prior_mesh: str = ""              # the prior's mesh: "" the scene's own; a resolution ("ci") solves it on the
                                       # scene's mesh there and carries it onto the graph's nodes (sim.coarse_prior;
                                       # the full banana's contact prior: 280 ms a step on a long contact, at ci 1 ms)
+    prior_compliance: str = ""        # contact_prior only: "" exact; "modal" keeps the prior on the scene's own
+                                      # mesh in real time (sim.compliance: 5-9 ms a step in contact on the full
+                                      # banana, where the exact one takes 60-1,000 ms)
 
     @property
     def prior_kind(self) -> str | None:
@@ -272,6 +275,9 @@ class Simulator(nn.Module):
         if config.prior_mesh and not config.prior_kind:
             raise InputError("prior_mesh needs a physics prior (contact_prior or tip_prior): it says where that "
                              "prior is solved")
+        if config.prior_compliance and (not config.contact_prior or config.prior_mesh):
+            raise InputError("prior_compliance needs contact_prior on the scene's own mesh (no prior_mesh): it says "
+                             "how that prior reads the fine mesh's compliance")
         if config.prior_kind and not config.quasi_static:
             raise InputError(f"{config.prior_kind}_prior needs quasi_static (the prior is a displacement from the "
                              "settled rest)")

@@ -313,13 +313,14 @@ def _surface_rest(dataset: FrameDataset, template) -> SurfaceRest:
 
 
 def _attach_prior(scene, dataset: FrameDataset, template, cfg: TrainConfig, kind: str, progress: bool,
-                  mesh: str = "") -> None:
+                  mesh: str = "", compliance: str = "") -> None:
     """Give every training sample the ``kind`` physics prior (sim.prior), solved on the scene's ``mesh`` (its own
     when ""), along each sequence from its frame 0."""
     if cfg.symmetry:
         raise InputError(f"{kind}_prior and symmetry augmentation cannot be combined: the prior is computed along "
                          "the unturned sequences")
-    prior = physics_prior(kind, scene, dataset.sequences[0].object_positions[0], template.object_nodes, mesh=mesh)
+    prior = physics_prior(kind, scene, dataset.sequences[0].object_positions[0], template.object_nodes, mesh=mesh,
+                          compliance=compliance)
     dataset.attach_priors(lambda seq: prior.rollout(seq.tool_poses), progress=progress)
 
 
@@ -371,7 +372,7 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
                                  template.num_tool_nodes, tool=scene.tool)
     if model.sim.config.prior_kind:
         _attach_prior(scene, dataset, template, cfg, model.sim.config.prior_kind, dist_.main,
-                      mesh=model.sim.config.prior_mesh)
+                      mesh=model.sim.config.prior_mesh, compliance=model.sim.config.prior_compliance)
     symmetry = None
     if cfg.symmetry:
         symmetry = node_symmetry(scene, template.rest.numpy())

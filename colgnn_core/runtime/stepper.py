@@ -102,7 +102,8 @@ class RawStepper:
         config = getattr(model, "config", None)
         kind = getattr(config, "prior_kind", None)
         self._physics = (physics_prior(kind, scene, self.rest_mesh, self.template.object_nodes,
-                                       mesh=getattr(config, "prior_mesh", "")) if kind else None)
+                                       mesh=getattr(config, "prior_mesh", ""),
+                                       compliance=getattr(config, "prior_compliance", "")) if kind else None)
         self._contact_next: TipContact | None = None  # the prior's state after the last proposal, kept by commit
         self.clamped = 0  # nodes capped in the last step
         # torch threads while the network runs (None: the process's count); the Predictor times it at warm-up

@@ -33,24 +33,35 @@ and a prior against that mesh scored worse on the training sequences (0.435 agai
 Cost: one K^-1 E_v per vertex that contact reaches (``sim.rest_stiffness``, cached) and a dense solve of one
 equation per face in contact; K^-1 A^T over all free coordinates is never formed (a round costs O(U N_free) for U
 constrained vertices). About 1-3 ms a step at ``ci`` on the cow (569 vertices); at full resolution (9,845)
-set-up took 17 s and a first contact 1.5 s, so the prior is meant for ``ci`` meshes.
+set-up took 17 s and a first contact 1.5 s, so with this exact compliance the prior is meant for ``ci`` meshes.
+On a fine mesh ``sim.compliance.ModalCompliance`` with ``points="vertices"`` costs about 6 ms a step in contact (the
+full banana; ``sim.prior.physics_prior(..., compliance="modal")``).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
+from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import nnls
 
+from colgnn_core.errors import InputError
 from colgnn_core.geometry.rays import ray_faces
+from colgnn_core.sim.compliance import ExactCompliance, ModalCompliance
 from colgnn_core.sim.ipc import DMIN_SCALE
 from colgnn_core.sim.rest_stiffness import RestStiffness
 
-__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "RESAMPLE_DEPTH", "SAMPLE_LEVEL", "Constraint", "ContactPrior", "multipliers"]
+__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "RESAMPLE_DEPTH", "SAMPLE_LEVEL", "Constraint", "ContactPrior", "POINTS",
+           "multipliers", "nonnegative_qp"]
 
 SAMPLE_LEVEL = 4  # barycentric samples per face: a triangular grid of (L+1)(L+2)/2 = 15 points
 MAX_ROUNDS = 8    # active-set rounds per pose (the cow: 2-4)
 CACHE_BYTES = 1 << 27  # 128 MiB of cached K^-1 E_v columns (72 N_free bytes a vertex)
 RESAMPLE_DEPTH = 0.05  # a second point on an active face only when it lies this many gaps deeper inside
+POINTS = ("faces", "vertices")  # where the contact constraints sit (ContactPrior's ``points``)
+BPP_MAX_ITERATIONS = 50   # block principal pivoting swaps before nnls takes over (the banana: 1-4)
+BPP_BACKUP = 3            # full swaps allowed without fewer wrong entries before single swaps
+BPP_TOLERANCE = 1e-12     # y = s x - t counts as negative below this times max |t|
 _RIDGE = 1e-9     # relative ridge on A K^-1 A^T: constraints of faces that share their vertices are nearly dependent
 
 
@@ -61,6 +72,42 @@ def _barycentric_grid(level: int) -> np.ndarray:
     """[S,3] barycentric weights of a triangular grid with ``level`` intervals per edge."""
     return np.array([(i, j, level - i - j) for i in range(level + 1) for j in range(level + 1 - i)],
                     dtype=np.float64) / level
+
+
+def nonnegative_qp(s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """x [k] >= 0 minimising 1/2 x^T s x - t . x for a symmetric positive definite ``s`` [k,k].
+
+    Block principal pivoting (Kim and Park's rule with Murty's single-exchange backup): guess the set F of positive
+    entries, solve s_FF x_F = t_F, and swap every entry that breaks the optimality conditions (x_F < 0, or
+    y = s x - t < 0 outside F) until none does. Why not scipy's nnls: its Lawson-Hanson adds one entry an
+    iteration; on the full banana's 300-400 contact rows it took 8 ms a solve, where the first guess "every row
+    pushes" is right but for a few rows and this needs 2-4 Cholesky solves. Falls back to nnls when it has not
+    converged in BPP_MAX_ITERATIONS."""
+    k = t.size
+    free = np.ones(k, dtype=bool)           # the guess: every contact row pushes
+    x, backup, fewest = np.zeros(k), BPP_BACKUP, k + 1
+    for _ in range(BPP_MAX_ITERATIONS):
+        x[:] = 0.0
+        if free.any():
+            x[free] = cho_solve(cho_factor(s[np.ix_(free, free)], check_finite=False), t[free], check_finite=False)
+        y = s @ x - t
+        x_tol = BPP_TOLERANCE * max(float(np.abs(x).max()), 1e-300)
+        y_tol = BPP_TOLERANCE * max(float(np.abs(t).max()), 1e-300)
+        wrong = (free & (x < -x_tol)) | (~free & (y < -y_tol))
+        count = int(wrong.sum())
+        if count == 0:
+            return np.maximum(x, 0.0)
+        if count < fewest:
+            fewest, backup = count, BPP_BACKUP
+            free ^= wrong
+        elif backup > 0:
+            backup -= 1
+            free ^= wrong
+        else:                                # Murty's rule: swap only the last wrong entry (finite)
+            free[np.flatnonzero(wrong)[-1]] ^= True
+    chol = np.linalg.cholesky(s)
+    lam, _ = nnls(chol.T, np.linalg.solve(chol, t), maxiter=50 * k)
+    return lam
 
 
 def multipliers(s: np.ndarray, target: np.ndarray, n_eq: int = 0) -> np.ndarray:
@@ -78,8 +125,7 @@ def multipliers(s: np.ndarray, target: np.ndarray, n_eq: int = 0) -> np.ndarray:
         target = ti - sei.T @ np.linalg.solve(see, te)
     if target.size == 0:  # equality rows alone
         return np.linalg.solve(see, te)
-    chol = np.linalg.cholesky(s)
-    lam, _ = nnls(chol.T, np.linalg.solve(chol, target), maxiter=50 * target.size)
+    lam = nonnegative_qp(s, target)
     if not n_eq:
         return lam
     return np.concatenate([np.linalg.solve(see, te - sei @ lam), lam])
@@ -90,9 +136,19 @@ class ContactPrior:
 
     scene: its object (tet mesh, surface faces), material, glued vertices and tool (any analytic shape);
     rest_mesh: [N_mesh,3] the settled rest (m); nodes: [N] mesh ids of the graph nodes the prior is given for.
+    stiffness, compliance: K and how K^-1 is read (default: exact, ``sim.compliance``); points: "faces" (each
+    face's deepest sample, module docstring) or "vertices" (each surface vertex in the tool: for a fine mesh, whose
+    faces dip into a smooth tool by far less than the gap; the full banana's roller, 3 mm faces under a 20 mm
+    radius: 0.06 mm. There it scores the same, 0.226 / 0.430 / 0.715 / 0.167 against 0.223 / 0.433 / 0.730 /
+    0.165 on four validation sequences, with 163 rows instead of 375 and one active-set round instead of 1-3:
+    5 ms a step in contact against 16-38; docs/FIDELITY.md, session 44).
     """
 
-    def __init__(self, scene, rest_mesh: np.ndarray, nodes: np.ndarray, stiffness: RestStiffness | None = None):
+    def __init__(self, scene, rest_mesh: np.ndarray, nodes: np.ndarray, stiffness: RestStiffness | None = None,
+                 compliance: ExactCompliance | ModalCompliance | None = None, points: str = "faces"):
+        if points not in POINTS:
+            raise InputError(f"unknown contact points {points!r}: choose one of {POINTS}")
+        self.points = points
         self.tool = scene.tool
         # The ground truth keeps the surface dmin to dmin + dhat away from the tool (the solver's offset barrier):
         # the prior holds it at the middle of that band. On the cow's training sequences, 0.43 -> 0.38.
@@ -100,12 +156,16 @@ class ContactPrior:
         self.stiffness = stiffness if stiffness is not None else RestStiffness(scene, rest_mesh)
         # Keep every vertex that contact reaches while the cache stays under CACHE_BYTES (at ci: all of them).
         self.stiffness.cache_vertices = max(256, CACHE_BYTES // (72 * max(self.stiffness.n_free, 1)))
+        self.compliance = compliance if compliance is not None else ExactCompliance(self.stiffness)
         self.rest = self.stiffness.rest
         self.nodes = np.asarray(nodes, dtype=np.int64)
         faces = np.asarray(scene.object.faces, dtype=np.int64)
         movable = (self.stiffness.free_index[faces] >= 0).any(axis=1)
         self.faces = faces[movable]                     # [F,3] surface faces with a free vertex (others cannot move)
         self.surface = np.unique(self.faces)            # their vertices
+        # points == "vertices": each surface vertex's constraint is written on one face holding it (a corner weight 1)
+        corner_of = {int(v): (f, j) for f, tri in reversed(list(enumerate(self.faces))) for j, v in enumerate(tri)}
+        self.vertex_face = np.array([corner_of[int(v)] for v in self.surface], dtype=np.int64).reshape(-1, 2)
         self.samples = _barycentric_grid(SAMPLE_LEVEL)  # [S,3]
 
     def step(self, previous: None, pose_prev: np.ndarray, pose: np.ndarray) -> tuple[None, np.ndarray]:
@@ -143,7 +203,10 @@ class ContactPrior:
         By default a face that is already ``active`` is skipped. ``resample``: an active face gets a second point
         when another one lies deeper than ``RESAMPLE_DEPTH`` x gap (a stretched face sliding over the tool); its
         first point alone would let the tool through it. ``ray`` (origin [3], direction [3]): where the ray
-        crosses a face is one more sample (a sharp tool's axis, which pierces a wide face between its samples)."""
+        crosses a face is one more sample (a sharp tool's axis, which pierces a wide face between its samples).
+        With ``points == "vertices"`` the constraints are the surface vertices in the tool (no resample, no ray)."""
+        if self.points == "vertices":
+            return self._entering_vertices(x, pose, active)
         near = np.full(x.shape[0], np.inf)
         near[self.surface] = self.tool.sdf(x[self.surface], pose) - self.gap
         tri = x[self.faces]                                                          # [F,3,3]
@@ -167,6 +230,20 @@ class ContactPrior:
             key = (int(f), tuple(np.round(b, 3).tolist()))
             if key not in active:
                 out[key] = b
+        return out
+
+    def _entering_vertices(self, x: np.ndarray, pose: np.ndarray, active: dict[Constraint, np.ndarray]
+                           ) -> dict[Constraint, np.ndarray]:
+        """{(face row, corner weights): weights [3]} of the surface vertices at ``x`` [N_mesh,3] nearer the tool than
+        the gap, beyond ``active`` (each written on the face that ``vertex_face`` gives it)."""
+        inside = np.flatnonzero(self.tool.sdf(x[self.surface], pose) < self.gap)
+        out = {}
+        for face, corner in self.vertex_face[inside].tolist():
+            weights = np.zeros(3)
+            weights[corner] = 1.0
+            key = (face, tuple(weights.tolist()))
+            if key not in active:
+                out[key] = weights
         return out
 
     def _ray_sample(self, tri: np.ndarray, pose: np.ndarray, ray: tuple[np.ndarray, np.ndarray],
@@ -208,9 +285,9 @@ class ContactPrior:
     def _constrained_response(self, verts: np.ndarray, bary: np.ndarray, normal: np.ndarray, target: np.ndarray,
                               n_eq: int) -> np.ndarray:
         """[3N_free]: u = K^-1 A^T lambda for the rows n_c . sum_j b_cj u_{v_cj} (glued vertices dropped), with
-        lambda from :meth:`_dual`. K^-1 A^T is never formed: with C [3U, 3N_free] the cached K^-1 E_v of the U
-        constrained vertices and M [3U, k] the rows' weighted normals, A K^-1 A^T = M^T C_U M (C_U: C at those
-        vertices' own coordinates, [3U, 3U]) and u = C^T (M lambda), so a round costs O(U N_free), not O(k N_free)."""
+        lambda from :func:`multipliers`. K^-1 A^T is never formed: with M [3U, k] the rows' weighted normals on the
+        U constrained vertices' coordinates (at most 9 entries a column), A K^-1 A^T = M^T C_UU M and
+        u = C_{:,U} (M lambda), both from ``self.compliance`` (``sim.compliance``)."""
         fi = self.stiffness.free_index[verts]
         weight = np.where(fi >= 0, bary, 0.0)
         unique, slot = np.unique(np.where(fi >= 0, verts, -1), return_inverse=True)
@@ -219,21 +296,13 @@ class ContactPrior:
         unique = unique[first:]
         if unique.size == 0:
             return np.zeros(3 * self.stiffness.n_free)
-        cols = self.stiffness.columns(unique.tolist())                                  # each [3, 3N_free]
-        m = np.zeros((unique.size, 3, len(verts)))
-        for j in range(3):
-            keep = slot[:, j] >= first
-            np.add.at(m, (slot[keep, j] - first, slice(None), np.flatnonzero(keep)),
-                      weight[keep, j, None] * normal[keep])
-        m = m.reshape(-1, len(verts))
-        own = (3 * self.stiffness.free_index[unique][:, None] + np.arange(3)).reshape(-1)
-        c_own = np.concatenate([c[:, own] for c in cols], axis=0)                       # [3U, 3U]
-        lam = multipliers(m.T @ c_own @ m, target, n_eq)
-        w = (m @ lam).reshape(-1, 3)
-        free_u = np.zeros(3 * self.stiffness.n_free)
-        for c, wu in zip(cols, w):
-            free_u += wu @ c
-        return free_u
+        keep = slot >= first                                                          # [k,3]
+        row, col = np.nonzero(keep)
+        entries = (weight[row, col, None] * normal[row]).reshape(-1)                  # [E*3]
+        rows = (3 * (slot[row, col] - first)[:, None] + np.arange(3)).reshape(-1)
+        m = sparse.csc_matrix((entries, (rows, np.repeat(row, 3))), shape=(3 * unique.size, len(verts)))
+        lam = multipliers(self.compliance.dual(unique, m), target, n_eq)
+        return self.compliance.response(unique, np.asarray(m @ lam).reshape(-1))
 
     def rollout(self, poses: np.ndarray) -> np.ndarray:
         """[T,N,3] (m): the prior along a pose sequence [T,7]."""

@@ -11,7 +11,9 @@ Each prior is built once for a scene, its settled rest and the graph nodes, and 
 
 Any of them can be solved on the scene's mesh at a coarser resolution and carried onto the graph's nodes
 (``mesh``, ``sim.coarse_prior``): the full banana's contact prior costs 280 ms a step on a long contact, its ``ci``
-one about 1 ms.
+one about 1 ms. The contact prior can instead stay on the fine mesh with ``compliance="modal"``
+(``sim.compliance.ModalCompliance``, one constraint per surface vertex): 5-9 ms a step in contact on the full
+banana, and as accurate as the exact one.
 """
 
 from __future__ import annotations
@@ -21,23 +23,38 @@ import numpy as np
 from colgnn_core.errors import InputError
 from colgnn_core.scenes import RESOLUTIONS, load_scene
 from colgnn_core.sim.coarse_prior import CoarsePrior
+from colgnn_core.sim.compliance import ModalCompliance, cache_dir
 from colgnn_core.sim.contact_prior import ContactPrior
+from colgnn_core.sim.rest_stiffness import RestStiffness
 from colgnn_core.sim.tip_prior import TipPrior, TipSidePrior
 
-__all__ = ["PRIORS", "physics_prior"]
+__all__ = ["COMPLIANCES", "PRIORS", "physics_prior"]
 
 PRIORS = {"tip": TipPrior, "tip_side": TipSidePrior, "contact": ContactPrior}
+COMPLIANCES = ("", "modal")   # "": exact K^-1 (sim.compliance.ExactCompliance); "modal": ModalCompliance
 
 
-def physics_prior(kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str = ""
-                  ) -> TipPrior | TipSidePrior | ContactPrior | CoarsePrior:
+def physics_prior(kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str = "",
+                  compliance: str = "") -> TipPrior | TipSidePrior | ContactPrior | CoarsePrior:
     """The ``kind`` prior (a key of PRIORS) for ``scene`` at the settled rest ``rest_mesh`` [N_mesh,3] (m), giving the
     displacement of mesh vertices ``nodes`` [N]. Factorises the stiffness (seconds at full resolution).
 
     mesh: "" (or the scene's own resolution) solves it on the scene's mesh; another resolution of the same scene
-    ("ci") solves it there and carries it onto ``nodes`` (sim.coarse_prior)."""
+    ("ci") solves it there and carries it onto ``nodes`` (sim.coarse_prior).
+    compliance: "" exact; "modal" (the contact prior on the scene's own mesh only): K^-1 compressed for the dual,
+    one constraint per surface vertex; its set-up (a minute on the full banana) is kept in sim.compliance.cache_dir.
+    """
     if kind not in PRIORS:
         raise InputError(f"unknown physics prior {kind!r}: choose one of {sorted(PRIORS)}")
+    if compliance not in COMPLIANCES:
+        raise InputError(f"unknown prior compliance {compliance!r}: choose one of {COMPLIANCES}")
+    if compliance == "modal":
+        if kind != "contact" or (mesh and mesh != scene.resolution):
+            raise InputError("the modal compliance is for the contact prior on the scene's own mesh (a fine one), "
+                             f"not the {kind!r} prior{' on ' + mesh if mesh else ''}")
+        stiffness = RestStiffness(scene, rest_mesh)
+        modal = ModalCompliance.for_surface(stiffness, scene.object.faces, cache=cache_dir())
+        return ContactPrior(scene, rest_mesh, nodes, stiffness=stiffness, compliance=modal, points="vertices")
     if not mesh or mesh == scene.resolution:
         return PRIORS[kind](scene, rest_mesh, nodes)
     if mesh not in RESOLUTIONS:

@@ -9,9 +9,11 @@ a least-recently-used cache, so contact that stays in one place pays for them on
 
 from __future__ import annotations
 
+import hashlib
 from collections import OrderedDict
 
 import numpy as np
+from scipy import sparse
 
 from colgnn_core.errors import InputError
 from colgnn_core.sim.elasticity import StableNeoHookean
@@ -41,7 +43,13 @@ class RestStiffness:
         self.n_free = int(free.size)
         dof = (3 * free[:, None] + np.arange(3)).reshape(-1)
         h = StableNeoHookean(scene.object, scene.material).hessian(self.rest).tocsr()
-        self._solve = cholesky_solver(h[dof][:, dof].tocsr())
+        self.hessian: sparse.csr_matrix = h[dof][:, dof].tocsr()   # [3N_free,3N_free] K (N/m)
+        self.hessian.sum_duplicates()
+        self.solve = cholesky_solver(self.hessian)                 # [3N_free(,k)] force (N) -> displacement (m)
+        digest = hashlib.sha256()
+        for part in (self.hessian.indptr, self.hessian.indices, self.hessian.data):
+            digest.update(np.ascontiguousarray(part).tobytes())
+        self.fingerprint = digest.hexdigest()[:16]                 # names K in on-disk caches (sim.compliance)
         self.cache_vertices = int(cache_vertices)
         self._columns: OrderedDict[int, np.ndarray] = OrderedDict()
 
@@ -53,7 +61,7 @@ class RestStiffness:
             rhs = np.zeros((3 * self.n_free, 3 * len(missing)))
             for j, v in enumerate(missing):
                 rhs[3 * self.free_index[v] + np.arange(3), 3 * j + np.arange(3)] = 1.0
-            sol = self._solve(rhs)
+            sol = self.solve(rhs)
             for j, v in enumerate(missing):
                 self._columns[v] = np.ascontiguousarray(sol[:, 3 * j:3 * j + 3].T)
         for v in vertices:
