@@ -16,7 +16,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
     ],
     python_requires=">=3.10",
-    install_requires=["numpy", "scipy", "trimesh", "ipctk", "numba", "tqdm", "matplotlib", "meshio"],
+    install_requires=["numpy", "scipy", "threadpoolctl", "trimesh", "ipctk", "numba", "tqdm", "matplotlib", "meshio"],
     zip_safe=False,
     maintainer="colgnn developers",
     maintainer_email="dev@colgnn.invalid",

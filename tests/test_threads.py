@@ -290,3 +290,59 @@ def test_a_predictor_on_2_threads_builds_its_graph_on_1_and_steps_as_on_2():
             assert np.abs(a - b).max() < 1e-6 * scene.bbox_diagonal()
     finally:
         torch.set_num_threads(before)
+
+
+def test_blas_threads_sets_numpys_blas_for_a_block_and_restores_it_even_on_error():
+    from threadpoolctl import threadpool_info
+
+    from colgnn_core.runtime.threads import blas_threads
+
+    def counts() -> set[int]:
+        return {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"}
+
+    before = counts()
+    assert before  # numpy's OpenBLAS is loaded
+    with blas_threads(1):
+        assert counts() == {1}
+    assert counts() == before
+    with pytest.raises(RuntimeError, match="inside"):
+        with blas_threads(1):
+            raise RuntimeError("inside")
+    assert counts() == before
+    with blas_threads(None):
+        assert counts() == before
+
+
+def test_the_stepper_runs_its_physics_prior_on_one_blas_thread(tmp_path, monkeypatch):
+    """The modal contact prior's small products on several OpenBLAS threads stalled the network's pool (bench p95
+    132 ms against 27 on the full banana, docs/FIDELITY.md session 44): the stepper limits them to
+    PRIOR_BLAS_THREADS."""
+    from threadpoolctl import threadpool_info
+
+    from colgnn_core.learn.graph import template_from_scene
+    from colgnn_core.learn.model import ModelConfig
+    from colgnn_core.runtime.models import PriorModel
+    from colgnn_core.runtime.stepper import PRIOR_BLAS_THREADS, RawStepper
+    from colgnn_core.scenes import load_scene
+    from colgnn_core.scenes.hard_cases import press_pose
+    from colgnn_core.sim.contact_prior import ContactPrior
+
+    assert PRIOR_BLAS_THREADS == 1
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    scene = load_scene("sphere_mat", "ci")
+    rest = np.asarray(scene.object.vertices, dtype=np.float64)
+    template = template_from_scene(scene, surface_only=True)
+    config = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True,
+                         contact_prior=True, prior_compliance="modal")
+    stepper = RawStepper(PriorModel(template, rest[template.object_nodes], config), scene, rest_mesh=rest)
+    seen = []
+    step = ContactPrior.step
+
+    def recording(self, *args):
+        seen.append({pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"})
+        return step(self, *args)
+
+    monkeypatch.setattr(ContactPrior, "step", recording)
+    stepper.reset(rest[template.object_nodes], press_pose(scene, 0.0))
+    stepper.step(press_pose(scene, 0.3))
+    assert seen == [{1}]

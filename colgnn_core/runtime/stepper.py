@@ -25,7 +25,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.interior import check_interior_kind, interior_lift
-from colgnn_core.runtime.threads import torch_threads
+from colgnn_core.runtime.threads import blas_threads, torch_threads
 from colgnn_core.sim.prior import physics_prior
 from colgnn_core.sim.tip_prior import TipContact
 
@@ -37,6 +37,9 @@ from colgnn_core.sim.tip_prior import TipContact
 # one process alternating the two settings (docs/FIDELITY.md, session 43): quiet 16.7 ms against 16.1 with these
 # operations on 2 threads; beside one busy process 14.7 against 19.3; beside a 2-process fit 20.2 against 55.2.
 STEP_THREADS = 1
+# The physics prior's numpy/scipy BLAS threads (runtime.threads.blas_threads): its products are small, and OpenBLAS's
+# spinning workers stall the network's pool (the full banana's modal prior: bench p95 132 -> 27 ms on 1 thread).
+PRIOR_BLAS_THREADS = 1
 
 
 class Stepper(Protocol):
@@ -152,7 +155,8 @@ class RawStepper:
         state is kept for :meth:`commit`."""
         if self._physics is None:
             return None
-        self._contact_next, u = self._physics.step(self.state.contact, self.state.pose, pose_next)
+        with blas_threads(PRIOR_BLAS_THREADS):
+            self._contact_next, u = self._physics.step(self.state.contact, self.state.pose, pose_next)
         return torch.from_numpy(u)
 
     def _capped(self, x_next: torch.Tensor) -> torch.Tensor:

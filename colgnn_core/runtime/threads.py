@@ -14,12 +14,14 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import lru_cache
 from statistics import median
 
 import torch
+from threadpoolctl import ThreadpoolController
 
 __all__ = ["MAX_INTERVAL_S", "QUIET_SAMPLES", "STALL_FRACTION", "ContentionGuard", "auto_threads", "cpu_stall_us",
-           "fastest_thread_count", "other_runnable_tasks", "torch_threads"]
+           "blas_threads", "fastest_thread_count", "other_runnable_tasks", "torch_threads"]
 
 QUIET_SAMPLES = 10     # uncontended calls in a row before the kernels get their threads back (0.4 s at 25 Hz)
 STALL_FRACTION = 0.15  # contended: some task waited for a CPU this fraction of the time (smoothed, STALL_SMOOTHING)
@@ -53,6 +55,29 @@ def torch_threads(n: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+@lru_cache(maxsize=1)
+def _blas() -> ThreadpoolController:
+    """The process's BLAS pools (numpy's and scipy's OpenBLAS), found once at the first use (they are loaded by then:
+    the physics priors import scipy.linalg when they are built)."""
+    return ThreadpoolController()
+
+
+@contextmanager
+def blas_threads(n: int | None) -> Iterator[None]:
+    """Run the block with numpy's and scipy's BLAS on ``n`` threads (None: as they are), restoring them after
+    (about 9 us).
+
+    Why: OpenBLAS's workers spin after a call, and torch's OpenMP pool then waits for a core. The full banana's
+    modal contact prior (small dense products and Cholesky factorisations) on 2 BLAS threads beside a 2-thread
+    network made single steps of the network take 90 ms (``colgnn bench`` p95 132 ms, against 27 with BLAS on one
+    thread; docs/FIDELITY.md, session 44)."""
+    if n is None:
+        yield
+        return
+    with _blas().limit(limits=n, user_api="blas"):
+        yield
 
 
 def fastest_thread_count(run: Callable[[], object], requested: int, set_threads: Callable[[int], object],

@@ -119,6 +119,8 @@ class ModalCompliance:
                              near_indices=self.near.indices, near_indptr=self.near.indptr)
         blocks = self.near.tobsr(blocksize=(3, 3))            # N's 3x3 vertex blocks, by free vertex row
         self._block_ptr, self._block_col, self._block = blocks.indptr, blocks.indices, blocks.data
+        # Load the compiled kernel now, not at the first contact: there it cost a step 100-200 ms (a bench's p95)
+        self.dual(surface[:1], sparse.csc_matrix(np.ones((3, 1))))
 
     @classmethod
     def for_surface(cls, stiffness: RestStiffness, faces: np.ndarray, cache: Path | None = None
