@@ -166,6 +166,7 @@ class ContactPrior:
         # points == "vertices": each surface vertex's constraint is written on one face holding it (a corner weight 1)
         corner_of = {int(v): (f, j) for f, tri in reversed(list(enumerate(self.faces))) for j, v in enumerate(tri)}
         self.vertex_face = np.array([corner_of[int(v)] for v in self.surface], dtype=np.int64).reshape(-1, 2)
+        self.surface_free = self.stiffness.free_index[self.surface] >= 0   # [S] not glued
         self.samples = _barycentric_grid(SAMPLE_LEVEL)  # [S,3]
 
     def step(self, previous: None, pose_prev: np.ndarray, pose: np.ndarray) -> tuple[None, np.ndarray]:
@@ -235,8 +236,9 @@ class ContactPrior:
     def _entering_vertices(self, x: np.ndarray, pose: np.ndarray, active: dict[Constraint, np.ndarray]
                            ) -> dict[Constraint, np.ndarray]:
         """{(face row, corner weights): weights [3]} of the surface vertices at ``x`` [N_mesh,3] nearer the tool than
-        the gap, beyond ``active`` (each written on the face that ``vertex_face`` gives it)."""
-        inside = np.flatnonzero(self.tool.sdf(x[self.surface], pose) < self.gap)
+        the gap, beyond ``active`` (each written on the face that ``vertex_face`` gives it). Glued vertices cannot
+        move: they get no constraint (it would be a zero row)."""
+        inside = np.flatnonzero((self.tool.sdf(x[self.surface], pose) < self.gap) & self.surface_free)
         out = {}
         for face, corner in self.vertex_face[inside].tolist():
             weights = np.zeros(3)
