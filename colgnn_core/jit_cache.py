@@ -31,9 +31,14 @@ def source_key(root: Path) -> str:
     return h.hexdigest()[:16]
 
 
+def user_cache(name: str) -> Path:
+    """``$XDG_CACHE_HOME/colgnn/<name>`` (default ``~/.cache/colgnn/<name>``): the package's caches on disk."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "colgnn" / name
+
+
 def cache_base() -> Path:
     """``$XDG_CACHE_HOME/colgnn/numba`` (default ``~/.cache/colgnn/numba``)."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "colgnn" / "numba"
+    return user_cache("numba")
 
 
 def use_source_keyed_cache(root: Path, base: Path | None = None) -> Path | None:

@@ -33,17 +33,17 @@ Units: m, N.
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 from scipy import sparse
 from scipy.sparse.linalg import LinearOperator, eigsh
-from numba import njit
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from colgnn_core.io import atomic_write
+from colgnn_core.jit_cache import user_cache
 from colgnn_core.sim.rest_stiffness import RestStiffness
 
 __all__ = ["BATCH_VERTICES", "MODES", "NEAR_FIELD_EDGES", "ExactCompliance", "ModalCompliance", "cache_dir",
@@ -63,7 +63,7 @@ def coordinates(stiffness: RestStiffness, vertices: np.ndarray) -> np.ndarray:
 
 def cache_dir() -> Path:
     """``$XDG_CACHE_HOME/colgnn/compliance`` (default ``~/.cache/colgnn/compliance``)."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "colgnn" / "compliance"
+    return user_cache("compliance")
 
 
 class ExactCompliance:
