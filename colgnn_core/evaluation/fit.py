@@ -58,6 +58,14 @@ MIN_TRAIN_STEPS = 30
 MIN_MINUTES = 1.0
 
 
+def rounded_shares(seconds: dict[str, float], total: float, rest: str = "train") -> dict[str, float]:
+    """``seconds`` (stage -> s) in 0.1 s steps, with stage ``rest`` taking what the others leave of ``total`` (s), so
+    that the shares add up to ``total`` instead of exceeding it by the rounding (each rounded apart: up to 0.1 s)."""
+    out = {k: round(v, 1) for k, v in seconds.items() if k != rest}
+    out[rest] = round(total - sum(out.values()), 1)
+    return {k: out[k] for k in seconds}
+
+
 @dataclass
 class FitPlan:
     """The run's choices, recorded in ``plan.json`` (a resumed run with the same budget keeps them)."""
@@ -79,7 +87,7 @@ def plan_budget(minutes: float) -> FitPlan:
     if not (np.isfinite(minutes) and minutes >= MIN_MINUTES):
         raise InputError(f"--minutes must be at least {MIN_MINUTES:g}, got {minutes}")
     total = 60.0 * float(minutes)
-    shares = {k: round(f * total, 1) for k, f in SHARES.items()}
+    shares = rounded_shares({k: f * total for k, f in SHARES.items()}, total)
     small = minutes < 10
     return FitPlan(minutes=float(minutes), shares_s=shares, frames=24 if small else 40,
                    test_sequences=1 if small else 3)
@@ -265,8 +273,9 @@ def _replan(plan: FitPlan, per_seq: float, left: float) -> None:
                 + 2 * plan.frames * MODEL_STEP_S + 20.0)
     evaluate_s = max(SHARES["evaluate"] * 60.0 * plan.minutes, estimate)
     rest = max(left - evaluate_s, 0.0)
-    plan.shares_s = {"data": round(DATA_FRACTION_AFTER_PROBE * rest, 1),
-                     "train": round((1 - DATA_FRACTION_AFTER_PROBE) * rest, 1), "evaluate": round(evaluate_s, 1)}
+    plan.shares_s = rounded_shares({"data": DATA_FRACTION_AFTER_PROBE * rest,
+                                    "train": (1 - DATA_FRACTION_AFTER_PROBE) * rest, "evaluate": evaluate_s},
+                                   rest + evaluate_s)
 
 
 def _dask_workers_hint(address: str) -> int:
@@ -318,8 +327,9 @@ def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, 
         grown = training_share(plan, prog.total - used)
         if grown > share + 1.0:
             plan.notes.append(f"the data finished {grown - share:.0f} s early: training gets {grown:.0f} s")
-            plan.shares_s["data"] = round(used, 1)  # what it took: the shares still add up to the budget
-            share = plan.shares_s["train"] = round(grown, 1)
+            # the data's share becomes what it took, and training gets the rest: the shares still add up to the budget
+            plan.shares_s = rounded_shares({**plan.shares_s, "data": used}, prog.total)
+            share = plan.shares_s["train"]
             _say(prog, plan.notes[-1], quiet)
         prog.set("train", "measuring the step rate")
         probe = work / "calibration.pt"
