@@ -138,3 +138,19 @@ def test_the_profile_holds_the_largest_mesh_marker_in_one_piece_and_keeps_udp():
     largest = max(len(load_scene(name, "full").object.faces) * 3 * 40 for name in scenes)
     assert int(shm.findtext("f:maxMessageSize", namespaces=ns)) >= 2 * largest
     assert int(shm.findtext("f:segment_size", namespaces=ns)) >= 8 * largest  # several messages in flight
+
+
+def test_a_shutdown_that_lands_in_a_destructor_is_not_printed_as_a_crash():
+    # A signal whose exception lands in a __del__ reaches sys.unraisablehook ("Exception ignored ... Traceback"),
+    # while the shutdown flag stops the spin loop; other unraisable exceptions still reach the previous hook.
+    from types import SimpleNamespace
+
+    from colgnn_ros.common import ShutdownRequested, quiet_shutdown
+
+    seen = []
+    hook = quiet_shutdown(seen.append)
+    hook(SimpleNamespace(exc_value=ShutdownRequested("SIGTERM")))
+    assert seen == []
+    other = SimpleNamespace(exc_value=ValueError("a real bug"))
+    hook(other)
+    assert seen == [other]
