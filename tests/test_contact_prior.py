@@ -114,3 +114,58 @@ def test_the_priors_refuse_bad_settings(mat):
         physics_prior("spring", scene, rest, np.arange(3))
     with pytest.raises(InputError, match="finite"):
         ContactPrior(scene, rest[:-1], np.arange(3))
+
+
+def test_a_model_that_does_not_see_its_prior_solves_it_beside_the_network_with_the_same_output(mat):
+    import os
+    import signal
+    import time
+
+    from colgnn_core.runtime.stepper import RawStepper
+
+    scene, rest, _ = mat
+    template = template_from_scene(scene, surface_only=True)
+    config = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True,
+                         contact_prior=True, prior_input=False)
+    torch.manual_seed(0)
+    sim = Simulator(template, config).eval()
+    plain = Simulator(template, replace(config, contact_prior=False, prior_input=True))
+    x = template.rest.to(torch.float64)
+    poses = np.stack([_press(scene, rest, d, (0.02, -0.01)) for d in (-0.01, 0.0, 0.003, 0.006, 0.004, -0.01)])
+    tool = torch.from_numpy(scene.tool.world_vertices(poses[3]))
+    # the nodes do not see the prior: no PRIOR_FEATURES, and the graph is built without one
+    widths = [s.build_graph(Frame(x, x, tool, tool, poses[3], None)).node_features.shape[1] for s in (sim, plain)]
+    assert widths[0] == widths[1]
+    here = RawStepper(sim, scene, rest_mesh=rest, prior_beside=False)
+    beside = RawStepper(sim, scene, rest_mesh=rest)
+    assert beside.prior_beside and not here.prior_beside and beside.prior_worker.alive
+    expect = physics_prior("contact", scene, rest, template.object_nodes).rollout(poses)
+    nodes = rest[template.object_nodes]
+    try:
+        for stepper in (here, beside):
+            stepper.reset(nodes, poses[0])
+        for t in range(1, 4):
+            a, b = here.step(poses[t]), beside.step(poses[t])
+            np.testing.assert_array_equal(a, b)   # the same prior, the same float64 arithmetic, another process
+        # the output is the network's plus the prior: the pose's prior moves the nodes millimetres
+        tool_t = torch.from_numpy(scene.tool.world_vertices(poses[2]))
+        with torch.no_grad():
+            pred, _ = sim.network(sim.build_graph(Frame(x, x, tool_t, tool, poses[3], None)))
+            net_only = sim.integrate(pred, x, x, torch.zeros_like(x)).numpy()
+        assert np.abs(expect[3]).max() > 0.004
+        np.testing.assert_allclose(a - net_only, expect[3], atol=1e-12)
+        # the prior's process dies: the stepper says so, solves the prior itself, and the output does not change
+        os.kill(beside.prior_worker.pid, signal.SIGKILL)
+        for _ in range(500):   # the kill lands within milliseconds
+            if not beside.prior_worker.alive:
+                break
+            time.sleep(0.01)
+        with pytest.warns(RuntimeWarning, match="prior's process"):
+            b = beside.step(poses[4])
+        np.testing.assert_array_equal(here.step(poses[4]), b)
+        assert not beside.prior_beside and "prior" in beside.prior_failure
+        np.testing.assert_array_equal(here.step(poses[5]), beside.step(poses[5]))
+    finally:
+        beside.close()
+    with pytest.raises(InputError, match="prior_input false needs a physics prior"):
+        Simulator(template, replace(config, contact_prior=False))

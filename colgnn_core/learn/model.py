@@ -75,6 +75,9 @@ class ModelConfig:
     prior_compliance: str = ""        # contact_prior only: "" exact; "modal" keeps the prior on the scene's own
                                       # mesh in real time (sim.compliance: 5-9 ms a step in contact on the full
                                       # banana, where the exact one takes 60-1,000 ms)
+    prior_input: bool = True          # a model with a physics prior: its nodes see the prior (PRIOR_FEATURES).
+                                      # False: the prior is only added to the output, so the network does not wait
+                                      # for it and the stepper solves it beside the network (runtime.prior_worker)
 
     @property
     def prior_kind(self) -> str | None:
@@ -278,6 +281,9 @@ class Simulator(nn.Module):
         if config.prior_compliance and (not config.contact_prior or config.prior_mesh):
             raise InputError("prior_compliance needs contact_prior on the scene's own mesh (no prior_mesh): it says "
                              "how that prior reads the fine mesh's compliance")
+        if not config.prior_input and not config.prior_kind:
+            raise InputError("prior_input false needs a physics prior (contact_prior or tip_prior): it says that "
+                             "the prior is added to the output without being a node feature")
         if config.prior_kind and not config.quasi_static:
             raise InputError(f"{config.prior_kind}_prior needs quasi_static (the prior is a displacement from the "
                              "settled rest)")
@@ -286,7 +292,7 @@ class Simulator(nn.Module):
                              f"and must be >= 0, got {config.global_modes} with order {config.order}")
         node_in = (template.node_feature_size + (3 if config.rest_feature else 0)
                    + (TOOL_FEATURES if config.quasi_static else 0) + (CONTACT_FEATURES if config.contact_depth else 0)
-                   + (PRIOR_FEATURES if config.prior_kind else 0))
+                   + (PRIOR_FEATURES if config.prior_kind and config.prior_input else 0))
         self.coarse = coarse_template(template, config.coarse_nodes) if config.coarse_nodes else None
         self.node_normalizer = Normalizer(node_in)
         edge_sets = dict(EDGE_SETS, **({"coarse": MESH_EDGE_FEATURES} if self.coarse is not None else {}))
@@ -406,7 +412,7 @@ class Simulator(nn.Module):
         if self.config.contact_depth:
             feats = torch.cat([feats, contact_features(self.rest_surface(), rest, frame.tool_next,
                                                        self.template.num_tool_nodes)], dim=1)
-        if self.config.prior_kind:
+        if self.config.prior_kind and self.config.prior_input:
             feats = torch.cat([feats, prior_features(self._required_prior(frame.prior).to(rest.dtype),
                                                      self.template.num_tool_nodes)], dim=1)
         if self.coarse is not None:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import math
+import os
 from collections.abc import Sequence
 import time
 from dataclasses import dataclass, field, replace
@@ -374,7 +375,9 @@ class Predictor:
             for graph in graphs:
                 self.model.network(graph)
         torch.set_num_threads(self.threads)
-        self.net.network_threads = fastest_thread_count(lambda: self.model.network(graphs[-1]), self.threads,
+        # A prior solved beside the network holds a core while the network runs: leave it that core.
+        requested = min(self.threads, max(1, (os.cpu_count() or 1) - 1)) if self.net.prior_beside else self.threads
+        self.net.network_threads = fastest_thread_count(lambda: self.model.network(graphs[-1]), requested,
                                                         torch.set_num_threads)
 
     def _rest_graph(self, pairs: int):

@@ -15,6 +15,7 @@ nodes is kept in ``clamped``.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -25,6 +26,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.io import Sequence
 from colgnn_core.learn.model import Frame
 from colgnn_core.runtime.interior import check_interior_kind, interior_lift
+from colgnn_core.runtime.prior_worker import PriorWorker, PriorWorkerError
 from colgnn_core.runtime.threads import blas_threads, torch_threads
 from colgnn_core.sim.prior import physics_prior
 from colgnn_core.sim.tip_prior import TipContact
@@ -79,10 +81,14 @@ class StepperState:
 
 
 class RawStepper:
-    """The network alone: x_{t+1} = model(x_t, x_{t-1}, tool at t and t+1), optionally displacement-capped."""
+    """The network alone: x_{t+1} = model(x_t, x_{t-1}, tool at t and t+1), optionally displacement-capped.
+
+    prior_beside: a model that adds a physics prior without seeing it (``prior_input`` false) solves it in a
+    process of its own while the network runs (runtime.prior_worker); False solves it here, before the network
+    (the same output; for machines with one core)."""
 
     def __init__(self, model, scene, max_displacement: float | None = None, max_deviation: float | None = None,
-                 rest_mesh: np.ndarray | None = None, interior: str = "elastic"):
+                 rest_mesh: np.ndarray | None = None, interior: str = "elastic", prior_beside: bool = True):
         for name, v in (("max_displacement", max_displacement), ("max_deviation", max_deviation)):
             if v is not None and not v > 0:
                 raise InputError(f"{name} must be > 0 (m), got {v}")
@@ -102,11 +108,17 @@ class RawStepper:
         self._lift = None          # built on first use (the elastic one factorises a matrix: seconds at full)
         # A model's physics prior: built here, not on the first step (it factorises the stiffness: 1.3 s at full
         # cone_bunny, which would otherwise stall the first published step).
+        # A network whose nodes do not see its prior (prior_input false) gets it from a process of its own, solved
+        # while the network runs (runtime.prior_worker), unless ``prior_beside`` is false.
         config = getattr(model, "config", None)
         kind = getattr(config, "prior_kind", None)
-        self._physics = (physics_prior(kind, scene, self.rest_mesh, self.template.object_nodes,
-                                       mesh=getattr(config, "prior_mesh", ""),
-                                       compliance=getattr(config, "prior_compliance", "")) if kind else None)
+        self._prior_args = (kind, scene, self.rest_mesh, self.template.object_nodes,
+                            getattr(config, "prior_mesh", ""), getattr(config, "prior_compliance", ""))
+        beside = (kind is not None and prior_beside and not getattr(config, "prior_input", True)
+                  and hasattr(model, "build_graph") and hasattr(model, "network"))
+        self._prior_worker = PriorWorker(*self._prior_args) if beside else None
+        self._physics = self._local_prior() if kind and not beside else None
+        self.prior_failure: str | None = None  # why the prior's process was given up (then it runs here)
         self._contact_next: TipContact | None = None  # the prior's state after the last proposal, kept by commit
         self.clamped = 0  # nodes capped in the last step
         # torch threads while the network runs (None: the process's count); the Predictor times it at warm-up
@@ -122,20 +134,25 @@ class RawStepper:
     def propose(self, pose_next: np.ndarray, tool_next: torch.Tensor) -> torch.Tensor:
         """x_{t+1} [N,3] from the network (capped if asked) without advancing the state.
 
-        Sets ``self.clamped``, ``self.last_ms`` ({'graph', 'gnn'} wall times of this call) and
+        Sets ``self.clamped``, ``self.last_ms`` ({'graph', 'gnn'} wall times of this call; with the prior beside the
+        network, 'gnn' includes the wait for it) and
         ``self.world_edges`` (world edges of the graph; None for models without one).
         """
         t0 = time.perf_counter()
         s = self.state
         outer = torch.get_num_threads()
         with torch_threads(self.step_threads):
-            frame = Frame(s.x_prev, s.x_t, s.tool_t, tool_next, pose_next, self._prior(pose_next))
+            beside = self._submit_prior(pose_next)
+            frame = Frame(s.x_prev, s.x_t, s.tool_t, tool_next, pose_next, None if beside else self._prior(pose_next))
             if hasattr(self.model, "build_graph") and hasattr(self.model, "network"):
-                graph = self.model.build_graph(frame)
-                self.world_edges = int(graph.world.senders.shape[0])
-                t1 = time.perf_counter()
-                pred_norm, _ = self.network(graph, outer)
-                x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev, frame.prior)
+                try:
+                    graph = self.model.build_graph(frame)
+                    self.world_edges = int(graph.world.senders.shape[0])
+                    t1 = time.perf_counter()
+                    pred_norm, _ = self.network(graph, outer)
+                finally:
+                    prior = self._prior_result(pose_next) if beside else frame.prior  # never left in flight
+                x_next = self.model.integrate(pred_norm, frame.x_t, frame.x_prev, prior)
             else:  # models without the graph pieces (the subspace baseline)
                 self.world_edges = None
                 t1 = t0
@@ -149,6 +166,54 @@ class RawStepper:
         that is set, else on ``threads`` (None: the current count); the count is restored after."""
         with torch_threads(self.network_threads or threads):
             return self.model.network(graph)
+
+    def _submit_prior(self, pose_next: np.ndarray) -> bool:
+        """Start the prior at ``pose_next`` in its process; False when there is none (or it just failed)."""
+        if self._prior_worker is None:
+            return False
+        try:
+            self._prior_worker.submit(self.state.contact, self.state.pose, pose_next)
+        except PriorWorkerError as exc:
+            self._give_up_worker(exc)
+            return False
+        return True
+
+    def _prior_result(self, pose_next: np.ndarray) -> torch.Tensor:
+        """The submitted prior's displacement [N,3]; solved here if its process failed meanwhile."""
+        try:
+            self._contact_next, u = self._prior_worker.result()
+        except PriorWorkerError as exc:
+            self._give_up_worker(exc)
+            return self._prior(pose_next)
+        return torch.from_numpy(u)
+
+    def _give_up_worker(self, exc: PriorWorkerError) -> None:
+        """Solve the prior in this process from now on (the model's output stays the same, only slower)."""
+        self.prior_failure = str(exc)
+        warnings.warn(f"{exc}; solving the physics prior in this process from now on", RuntimeWarning, stacklevel=3)
+        self._prior_worker.close()
+        self._prior_worker = None
+        self._physics = self._local_prior()
+
+    def _local_prior(self):
+        """The model's physics prior in this process (factorises the stiffness: seconds at full resolution)."""
+        kind, scene, rest_mesh, nodes, mesh, compliance = self._prior_args
+        return physics_prior(kind, scene, rest_mesh, nodes, mesh=mesh, compliance=compliance)
+
+    @property
+    def prior_worker(self) -> PriorWorker | None:
+        """The process that solves the physics prior beside the network (None: none, or it was given up)."""
+        return self._prior_worker
+
+    @property
+    def prior_beside(self) -> bool:
+        """True while the physics prior runs in a process of its own, beside the network (it then holds a core)."""
+        return self._prior_worker is not None
+
+    def close(self) -> None:
+        """Stop the prior's process, if any (it also stops with this process)."""
+        if self._prior_worker is not None:
+            self._prior_worker.close()
 
     def _prior(self, pose_next: np.ndarray) -> torch.Tensor | None:
         """The physics prior's displacement [N,3] at ``pose_next`` for a model with one (else None); the prior's
