@@ -38,8 +38,10 @@ class PriorWorkerError(RuntimeError):
 class PriorWorker:
     """``sim.prior.physics_prior(kind, scene, rest_mesh, nodes, mesh, compliance)`` in a child process.
 
-    rest_mesh: [N_mesh,3] settled rest (m); nodes: [N] graph-node mesh ids. Blocks until the child has built its
-    prior (its errors, such as an unknown prior kind, are raised here as :class:`PriorWorkerError`)."""
+    rest_mesh: [N_mesh,3] settled rest (m); nodes: [N] graph-node mesh ids. Returns once the child has started;
+    the child builds its prior meanwhile (seconds: imports, the stiffness's factorisation), beside whatever the
+    caller does next (the Predictor compiles its network), and the first :meth:`submit` waits for it (its errors,
+    such as a failed factorisation, are raised there as :class:`PriorWorkerError`)."""
 
     def __init__(self, kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str = "",
                  compliance: str = ""):
@@ -51,11 +53,18 @@ class PriorWorker:
         self._process.start()
         child.close()
         self._pending = False
+        self._ready = False
         self._finalizer = weakref.finalize(self, _shut, self._conn, self._process)
+
+    def wait_ready(self) -> None:
+        """Wait until the child has built its prior (at most READY_TIMEOUT_S)."""
+        if self._ready:
+            return
         if not self._conn.poll(READY_TIMEOUT_S):
             self.close()
             raise PriorWorkerError(f"the prior's process did not start within {READY_TIMEOUT_S:.0f} s")
         self._receive()
+        self._ready = True
 
     @property
     def alive(self) -> bool:
@@ -70,6 +79,7 @@ class PriorWorker:
         """Start ``prior.step(state, pose_prev, pose)`` in the child (poses [7]: position, quaternion xyzw)."""
         if self._pending:
             raise PriorWorkerError("a prior request is already in flight: take its result first")
+        self.wait_ready()
         try:
             self._conn.send((state, np.asarray(pose_prev, dtype=np.float64), np.asarray(pose, dtype=np.float64)))
         except (OSError, EOFError, BrokenPipeError) as exc:
