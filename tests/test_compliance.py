@@ -129,8 +129,8 @@ def test_vertex_constraints_hold_every_surface_vertex_out_of_the_tool(banana):
         ContactPrior(scene, rest, np.arange(len(rest)), stiffness=stiffness, points="edges")
 
 
-def test_the_modal_prior_is_built_by_name_and_only_for_the_contact_prior_on_its_own_mesh(banana, tmp_path,
-                                                                                       monkeypatch):
+def test_the_modal_prior_is_built_by_name_and_only_for_a_contact_or_edge_prior_on_its_own_mesh(banana, tmp_path,
+                                                                                              monkeypatch):
     scene, rest, stiffness, surface = banana
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     prior = physics_prior("contact", scene, rest, np.arange(len(rest)), compliance="modal")
@@ -141,7 +141,7 @@ def test_the_modal_prior_is_built_by_name_and_only_for_the_contact_prior_on_its_
     # at ci the near field (4 mean edges, 36 mm) reaches most of the roller's contact: close to exact
     assert np.linalg.norm(prior.displacement(pose) - exact.displacement(pose)) < 0.05 * np.linalg.norm(
         exact.displacement(pose))
-    with pytest.raises(InputError, match="modal compliance is for the contact prior"):
+    with pytest.raises(InputError, match="modal compliance is for the contact or edge prior"):
         physics_prior("tip", scene, rest, np.arange(len(rest)), compliance="modal")
     with pytest.raises(InputError, match="unknown prior compliance"):
         physics_prior("contact", scene, rest, np.arange(len(rest)), compliance="dense")

@@ -16,6 +16,7 @@ from colgnn_core.learn.train import train
 from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.hard_cases import press_pose
 from colgnn_core.sim.dataset import simulate_sequence
+from colgnn_core.sim.prior import physics_prior
 from tests.helpers import train_data as fx
 
 torch.set_num_threads(1)
@@ -61,6 +62,26 @@ def test_a_turned_pose_and_its_turned_tool_vertices_agree(ring):
     # the rest shape turns into itself, node for node
     assert torch.abs(x_next - rest).max() < 1e-9
     assert sym.turn(frame, rest, pose, -1)[0] is frame
+
+
+def test_a_frame_s_physics_prior_turns_with_it_into_the_prior_of_the_turned_pose(ring):
+    """Why --symmetry may train a model with a prior: the edge prior of a turned cut is the turned prior, so a
+    turned sample carries the prior its pose would have had (at ci on the unsettled mesh, to rounding)."""
+    scene, template, sym = ring
+    rest = np.asarray(scene.object.vertices, dtype=np.float64)
+    prior = physics_prior("edge", scene, rest, template.object_nodes)
+    pose = np.array([0.1, 0.003, rest[:, 2].max() - 0.012, 0.0, 0.05, 0.2, 0.0])
+    pose[6] = math.sqrt(1.0 - float(pose[3:6] @ pose[3:6]))
+    u = prior.displacement(pose)
+    assert np.abs(u).max() > 0.01
+    tool = scene.tool.world_vertices(pose)
+    frame, x_next = frame_from_sequence(template, np.stack([rest] * 2), np.stack([tool, tool]), np.stack([pose] * 2),
+                                        0, priors=np.stack([u, u]))
+    for k in (4, 17):
+        turned, _, _ = sym.turn(frame, x_next, pose, k)
+        expect = prior.displacement(sym.turn_pose(pose, sym.angles[k]))
+        assert np.abs(turned.prior.numpy() - expect).max() < 1e-12
+        assert np.abs(turned.prior.numpy() - u).max() > 0.005   # it did move: other nodes, other directions
 
 
 def test_turning_a_simulated_press_equals_simulating_the_turned_press(ring):

@@ -69,12 +69,14 @@ class ModelConfig:
                                       # (sim.tip_prior.TipSidePrior: a pocket as wide as the cone)
     contact_prior: bool = False       # quasi_static only: the same with sim.contact_prior (a frictionless smooth
                                       # tool holds every face it reaches on its surface)
+    edge_prior: bool = False          # quasi_static only: the same with sim.edge_prior (a blade's edge carries the
+                                      # rest surface above it, free to slide along the edge)
     prior_mesh: str = ""              # the prior's mesh: "" the scene's own; a resolution ("ci") solves it on the
                                       # scene's mesh there and carries it onto the graph's nodes (sim.coarse_prior;
                                       # the full banana's contact prior: 280 ms a step on a long contact, at ci 1 ms)
-    prior_compliance: str = ""        # contact_prior only: "" exact; "modal" keeps the prior on the scene's own
-                                      # mesh in real time (sim.compliance: 5-9 ms a step in contact on the full
-                                      # banana, where the exact one takes 60-1,000 ms)
+    prior_compliance: str = ""        # contact_prior or edge_prior only: "" exact; "modal" keeps the prior on the
+                                      # scene's own mesh in real time (sim.compliance: 5-9 ms a step in contact
+                                      # on the full banana, where the exact one takes 60-1,000 ms)
     prior_input: bool = True          # a model with a physics prior: its nodes see the prior (PRIOR_FEATURES).
                                       # False: the prior is only added to the output, so the network does not wait
                                       # for it and the stepper solves it beside the network (runtime.prior_worker)
@@ -84,6 +86,8 @@ class ModelConfig:
         """The physics prior the output is added to (a key of sim.prior.PRIORS), or None."""
         if self.tip_prior:
             return "tip_side" if self.side_contact else "tip"
+        if self.edge_prior:
+            return "edge"
         return "contact" if self.contact_prior else None
 
     def to_dict(self) -> dict:
@@ -271,19 +275,20 @@ class Simulator(nn.Module):
             raise InputError("quasi_static needs order 0 (the output is the displacement from the settled rest)")
         if config.contact_depth and not config.quasi_static:
             raise InputError("contact_depth needs quasi_static (the depth is measured under the settled rest)")
-        if config.tip_prior and config.contact_prior:
-            raise InputError("tip_prior and contact_prior exclude each other: a model adds one physics prior")
+        if sum((config.tip_prior, config.contact_prior, config.edge_prior)) > 1:
+            raise InputError("tip_prior, contact_prior and edge_prior exclude each other: a model adds one physics "
+                             "prior")
         if config.side_contact and not config.tip_prior:
             raise InputError("side_contact needs tip_prior (it widens the sharp tip's pocket to the cone)")
         if config.prior_mesh and not config.prior_kind:
-            raise InputError("prior_mesh needs a physics prior (contact_prior or tip_prior): it says where that "
-                             "prior is solved")
-        if config.prior_compliance and (not config.contact_prior or config.prior_mesh):
-            raise InputError("prior_compliance needs contact_prior on the scene's own mesh (no prior_mesh): it says "
-                             "how that prior reads the fine mesh's compliance")
+            raise InputError("prior_mesh needs a physics prior (contact_prior, edge_prior or tip_prior): it says "
+                             "where that prior is solved")
+        if config.prior_compliance and (not (config.contact_prior or config.edge_prior) or config.prior_mesh):
+            raise InputError("prior_compliance needs contact_prior or edge_prior on the scene's own mesh (no "
+                             "prior_mesh): it says how that prior reads the fine mesh's compliance")
         if not config.prior_input and not config.prior_kind:
-            raise InputError("prior_input false needs a physics prior (contact_prior or tip_prior): it says that "
-                             "the prior is added to the output without being a node feature")
+            raise InputError("prior_input false needs a physics prior (contact_prior, edge_prior or tip_prior): it "
+                             "says that the prior is added to the output without being a node feature")
         if config.prior_kind and not config.quasi_static:
             raise InputError(f"{config.prior_kind}_prior needs quasi_static (the prior is a displacement from the "
                              "settled rest)")

@@ -6,7 +6,8 @@ everywhere. Gravity, the table and the glued band are unchanged by a turn about 
 whole recorded transition (object, tool and its pose) about the axis of a rotationally symmetric object gives
 another valid transition of the same object. Each training sample is turned by a random one of the mesh's own
 symmetry rotations, which map the graph nodes onto each other: a node permutation, so the graph (topology, rest
-shape, node types, coarse clusters) stays the scene's own.
+shape, node types, coarse clusters) stays the scene's own. A physics prior (sim.prior) turns with the sample: it is
+a function of the tool's pose on the same mesh, so the turned prior is the prior of the turned pose.
 
 A scene declares its symmetry in its TOML::
 
@@ -56,7 +57,8 @@ class NodeSymmetry:
 
     def turn(self, frame: Frame, x_next: torch.Tensor, pose_t: np.ndarray, k: int
              ) -> tuple[Frame, torch.Tensor, np.ndarray]:
-        """The sample ``(frame, x_next [N,3], pose_t [7])`` turned by ``angles[k]``; k = -1 returns it unchanged."""
+        """The sample ``(frame, x_next [N,3], pose_t [7])`` turned by ``angles[k]``, the frame's physics prior (a
+        displacement [N,3]) with it; k = -1 returns it unchanged."""
         if k < 0:
             return frame, x_next, pose_t
         angle, perm = float(self.angles[k]), torch.from_numpy(self.permutations[k])
@@ -71,8 +73,14 @@ class NodeSymmetry:
         def points(y: torch.Tensor) -> torch.Tensor:
             return (y - c) @ R.T + c
 
+        def displacements(u: torch.Tensor) -> torch.Tensor:  # a node vector field: turned, no centre
+            out = torch.empty_like(u)
+            out[perm] = u @ R.T.to(u.dtype)
+            return out
+
         turned = Frame(nodes(frame.x_prev), nodes(frame.x_t), points(frame.tool_t), points(frame.tool_next),
-                       None if frame.pose_next is None else self.turn_pose(frame.pose_next, angle))
+                       None if frame.pose_next is None else self.turn_pose(frame.pose_next, angle),
+                       None if frame.prior is None else displacements(frame.prior))
         return turned, nodes(x_next), self.turn_pose(pose_t, angle)
 
     def turn_points(self, points: np.ndarray, angle: float) -> np.ndarray:

@@ -312,13 +312,13 @@ def _surface_rest(dataset: FrameDataset, template) -> SurfaceRest:
     return SurfaceRest.of(template.surface_faces, dataset.sequences[0].object_positions[0][template.object_nodes])
 
 
-def _attach_prior(scene, dataset: FrameDataset, template, cfg: TrainConfig, kind: str, progress: bool,
-                  mesh: str = "", compliance: str = "") -> None:
+def _attach_prior(scene, dataset: FrameDataset, template, kind: str, progress: bool, mesh: str = "",
+                  compliance: str = "") -> None:
     """Give every training sample the ``kind`` physics prior (sim.prior), solved on the scene's ``mesh`` (its own
     when ""), along each sequence from its frame 0."""
-    if cfg.symmetry:
-        raise InputError(f"{kind}_prior and symmetry augmentation cannot be combined: the prior is computed along "
-                         "the unturned sequences")
+    # With --symmetry each sample's prior is turned with it (learn.symmetry): the priors are functions of the pose
+    # on the scene's mesh, so on a symmetric mesh the prior of a turned pose is the turned prior (knife_torus's edge
+    # prior at full resolution, settled rest, modal compliance: to 5e-4 of its norm; exactly at ci).
     prior = physics_prior(kind, scene, dataset.sequences[0].object_positions[0], template.object_nodes, mesh=mesh,
                           compliance=compliance)
     dataset.attach_priors(lambda seq: prior.rollout(seq.tool_poses), progress=progress)
@@ -371,7 +371,7 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
     detector = CollisionDetector(template.surface_faces, scene.tool.faces, template.num_object_nodes,
                                  template.num_tool_nodes, tool=scene.tool)
     if model.sim.config.prior_kind:
-        _attach_prior(scene, dataset, template, cfg, model.sim.config.prior_kind, dist_.main,
+        _attach_prior(scene, dataset, template, model.sim.config.prior_kind, dist_.main,
                       mesh=model.sim.config.prior_mesh, compliance=model.sim.config.prior_compliance)
     symmetry = None
     if cfg.symmetry:

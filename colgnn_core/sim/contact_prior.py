@@ -51,8 +51,8 @@ from colgnn_core.sim.compliance import ExactCompliance, ModalCompliance
 from colgnn_core.sim.ipc import DMIN_SCALE
 from colgnn_core.sim.rest_stiffness import RestStiffness
 
-__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "RESAMPLE_DEPTH", "SAMPLE_LEVEL", "Constraint", "ContactPrior", "POINTS",
-           "multipliers", "nonnegative_qp"]
+__all__ = ["CACHE_BYTES", "MAX_ROUNDS", "RESAMPLE_DEPTH", "SAMPLE_LEVEL", "Constraint", "ContactPrior", "EqualityRows",
+           "POINTS", "multipliers", "nonnegative_qp", "point_rows"]
 
 SAMPLE_LEVEL = 4  # barycentric samples per face: a triangular grid of (L+1)(L+2)/2 = 15 points
 MAX_ROUNDS = 8    # active-set rounds per pose (the cow: 2-4)
@@ -66,6 +66,17 @@ _RIDGE = 1e-9     # relative ridge on A K^-1 A^T: constraints of faces that shar
 
 
 Constraint = tuple[int, tuple[float, ...]]  # (face row, its point's barycentric weights rounded): one constraint
+# Equality rows n_e . sum_j b_ej u_{v_ej} = target_e: (vertices [e,3] mesh ids, barycentric weights [e,3],
+# normals [e,3], targets [e] m).
+EqualityRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def point_rows(verts: np.ndarray, bary: np.ndarray, displacement: np.ndarray) -> EqualityRows:
+    """The three equality rows (along x, y, z) that move the material point ``bary`` [3] of the face ``verts`` [3]
+    by exactly ``displacement`` [3] (m)."""
+    verts, bary = np.asarray(verts, dtype=np.int64), np.asarray(bary, dtype=np.float64)
+    return (np.repeat(verts[None], 3, axis=0), np.repeat(bary[None], 3, axis=0), np.eye(3),
+            np.asarray(displacement, dtype=np.float64).reshape(3))
 
 
 def _barycentric_grid(level: int) -> np.ndarray:
@@ -263,25 +274,30 @@ class ContactPrior:
         return depth, bary
 
     def solve(self, x: np.ndarray, pose: np.ndarray, active: dict[Constraint, np.ndarray],
-              equality: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+              equality: EqualityRows | None = None) -> np.ndarray:
         """[3N_free]: the minimiser under the ``active`` points' inequality constraints (each point, from its place
-        at ``x``, on or outside the tool's surface along the normal there) and, when given, the ``equality``
-        (face vertices [3], barycentric weights [3], displacement [3] m): that material point moves by exactly it."""
+        at ``x``, on or outside the tool's surface along the normal there) and, when given, the ``equality`` rows
+        (:data:`EqualityRows`, e.g. :func:`point_rows`: a material point moves by exactly a displacement)."""
         faces = np.fromiter((f for f, _ in active), dtype=np.int64, count=len(active))
-        bary = np.stack(list(active.values()))                                       # [k,3]
+        bary = np.stack(list(active.values())) if active else np.zeros((0, 3))      # [k,3]
         verts = self.faces[faces]                                                    # [k,3]
         here = np.einsum("kj,kjd->kd", bary, x[verts])
-        depth, normal = self.tool.sdf_grad(here, pose)
+        if active:
+            depth, normal = self.tool.sdf_grad(here, pose)
+        else:
+            depth, normal = np.zeros(0), np.zeros((0, 3))
         moved = np.einsum("kd,kd->k", normal, here - np.einsum("kj,kjd->kd", bary, self.rest[verts]))
         target = moved - (depth - self.gap)                                          # n . (b u) after the step
         n_eq = 0
-        if equality is not None:  # three rows first: n = e_x, e_y, e_z
-            e_verts, e_bary, e_target = (np.asarray(a) for a in equality)
-            verts = np.vstack([np.repeat(e_verts[None], 3, axis=0), verts])
-            bary = np.vstack([np.repeat(e_bary[None], 3, axis=0), bary])
-            normal = np.vstack([np.eye(3), normal])
-            target = np.concatenate([e_target, target])
-            n_eq = 3
+        if equality is not None:  # the equality rows first
+            e_verts, e_bary, e_normal, e_target = (np.asarray(a) for a in equality)
+            verts = np.vstack([e_verts.astype(np.int64).reshape(-1, 3), verts])
+            bary = np.vstack([e_bary.reshape(-1, 3), bary])
+            normal = np.vstack([e_normal.reshape(-1, 3), normal])
+            target = np.concatenate([e_target.reshape(-1), target])
+            n_eq = int(e_target.size)
+        if target.size == 0:
+            return np.zeros(3 * self.stiffness.n_free)
         return self._constrained_response(verts, bary, normal, target, n_eq)
 
     def _constrained_response(self, verts: np.ndarray, bary: np.ndarray, normal: np.ndarray, target: np.ndarray,

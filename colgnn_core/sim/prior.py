@@ -7,7 +7,9 @@ Each prior is built once for a scene, its settled rest and the graph nodes, and 
 * ``tip_side`` (``sim.tip_prior.TipSidePrior``): the same, with the cone's side holding every face it reaches
   outside it (a pocket as wide as the cone);
 * ``contact`` (``sim.contact_prior``): a frictionless smooth tool that holds every face it reaches on its surface
-  (no state).
+  (no state);
+* ``edge`` (``sim.edge_prior``): a blade whose edge carries the surface above it, its flats holding every face they
+  reach (no state).
 
 Any of them can be solved on the scene's mesh at a coarser resolution and carried onto the graph's nodes
 (``mesh``, ``sim.coarse_prior``): the full banana's contact prior costs 280 ms a step on a long contact, its ``ci``
@@ -25,36 +27,39 @@ from colgnn_core.scenes import RESOLUTIONS, load_scene
 from colgnn_core.sim.coarse_prior import CoarsePrior
 from colgnn_core.sim.compliance import ModalCompliance, cache_dir
 from colgnn_core.sim.contact_prior import ContactPrior
+from colgnn_core.sim.edge_prior import EdgePrior
 from colgnn_core.sim.rest_stiffness import RestStiffness
 from colgnn_core.sim.tip_prior import TipPrior, TipSidePrior
 
-__all__ = ["COMPLIANCES", "PRIORS", "physics_prior"]
+__all__ = ["COMPLIANCES", "MODAL_PRIORS", "PRIORS", "physics_prior"]
 
-PRIORS = {"tip": TipPrior, "tip_side": TipSidePrior, "contact": ContactPrior}
+PRIORS = {"tip": TipPrior, "tip_side": TipSidePrior, "contact": ContactPrior, "edge": EdgePrior}
+MODAL_PRIORS = ("contact", "edge")  # the priors whose rows sit on surface points, so the modal compliance serves
 COMPLIANCES = ("", "modal")   # "": exact K^-1 (sim.compliance.ExactCompliance); "modal": ModalCompliance
 
 
 def physics_prior(kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str = "",
-                  compliance: str = "") -> TipPrior | TipSidePrior | ContactPrior | CoarsePrior:
+                  compliance: str = "") -> TipPrior | TipSidePrior | ContactPrior | EdgePrior | CoarsePrior:
     """The ``kind`` prior (a key of PRIORS) for ``scene`` at the settled rest ``rest_mesh`` [N_mesh,3] (m), giving the
     displacement of mesh vertices ``nodes`` [N]. Factorises the stiffness (seconds at full resolution).
 
     mesh: "" (or the scene's own resolution) solves it on the scene's mesh; another resolution of the same scene
     ("ci") solves it there and carries it onto ``nodes`` (sim.coarse_prior).
-    compliance: "" exact; "modal" (the contact prior on the scene's own mesh only): K^-1 compressed for the dual,
-    one constraint per surface vertex; its set-up (a minute on the full banana) is kept in sim.compliance.cache_dir.
+    compliance: "" exact; "modal" (the contact or edge prior on the scene's own mesh only): K^-1 compressed for the
+    dual, one constraint per surface vertex; its set-up (a minute on the full banana) is kept in
+    sim.compliance.cache_dir.
     """
     if kind not in PRIORS:
         raise InputError(f"unknown physics prior {kind!r}: choose one of {sorted(PRIORS)}")
     if compliance not in COMPLIANCES:
         raise InputError(f"unknown prior compliance {compliance!r}: choose one of {COMPLIANCES}")
     if compliance == "modal":
-        if kind != "contact" or (mesh and mesh != scene.resolution):
-            raise InputError("the modal compliance is for the contact prior on the scene's own mesh (a fine one), "
-                             f"not the {kind!r} prior{' on ' + mesh if mesh else ''}")
+        if kind not in MODAL_PRIORS or (mesh and mesh != scene.resolution):
+            raise InputError("the modal compliance is for the contact or edge prior on the scene's own mesh (a fine "
+                             f"one), not the {kind!r} prior{' on ' + mesh if mesh else ''}")
         stiffness = RestStiffness(scene, rest_mesh)
         modal = ModalCompliance.for_surface(stiffness, scene.object.faces, cache=cache_dir())
-        return ContactPrior(scene, rest_mesh, nodes, stiffness=stiffness, compliance=modal, points="vertices")
+        return PRIORS[kind](scene, rest_mesh, nodes, stiffness=stiffness, compliance=modal, points="vertices")
     if not mesh or mesh == scene.resolution:
         return PRIORS[kind](scene, rest_mesh, nodes)
     if mesh not in RESOLUTIONS:

@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 from colgnn_core.errors import InputError
 from colgnn_core.geometry.rays import ray_faces
 from colgnn_core.geometry.transforms import quat_to_matrix
-from colgnn_core.sim.contact_prior import ContactPrior
+from colgnn_core.sim.contact_prior import ContactPrior, point_rows
 from colgnn_core.sim.rest_stiffness import RestStiffness
 
 __all__ = ["AHEAD_GAPS", "KAPPA", "SIDE_ROUNDS", "TipContact", "TipPrior", "TipSidePrior", "check_tip_tool"]
@@ -221,7 +221,7 @@ class TipSidePrior(TipPrior):
         if contact is None or not free_u.any():  # no contact, or a glued triangle
             return free_u
         pose = np.asarray(pose, dtype=np.float64)
-        tip = (self.faces[contact.face], np.asarray(contact.bary), self.target(contact, pose))
+        tip = point_rows(self.faces[contact.face], np.asarray(contact.bary), self.target(contact, pose))
         ray = (pose[:3], _axis(pose))
         every = np.arange(self.rest.shape[0])
         active: dict = {}
