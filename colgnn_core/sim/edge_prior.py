@@ -71,7 +71,6 @@ class EdgePrior:
         self.stiffness, self.rest, self.nodes = self.contact.stiffness, self.contact.rest, self.contact.nodes
         self.gap = self.contact.gap
         self.faces = np.asarray(scene.object.faces, dtype=np.int64)   # the whole closed surface (inside tests)
-        self.surface = np.unique(self.faces)
         edges = self.rest[self.faces] - self.rest[np.roll(self.faces, 1, axis=1)]
         spacing = float(np.linalg.norm(edges, axis=2).mean())
         half = 0.5 * float(scene.tool.params["length"])
@@ -86,14 +85,9 @@ class EdgePrior:
         up = rot[:, 2]
         samples = pose[:3] + np.outer(self.edge_x, rot[:, 0]) - self.gap * up          # [S,3]
         # The rays lie in the blade's plane: only faces that straddle it can be crossed.
-        side = (self.rest[self.surface] - pose[:3]) @ rot[:, 1]
-        across = np.zeros(self.rest.shape[0])
-        across[self.surface] = side
-        y = across[self.faces]
+        y = (self.rest[self.faces] - pose[:3]) @ rot[:, 1]                               # [F,3] across the blade
         strip = np.flatnonzero((y.min(axis=1) <= 0.0) & (y.max(axis=1) >= 0.0))
         faces, bary, points = [], [], []
-        if strip.size == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
         tri = self.rest[self.faces[strip]]
         outward = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ up     # [F'] > 0: the ray leaves there
         for s in samples:
@@ -123,11 +117,9 @@ class EdgePrior:
         verts, bary, samples = verts[movable], bary[movable], samples[movable]
         rot = quat_to_matrix(np.asarray(pose, dtype=np.float64)[3:])
         moved = samples - np.einsum("kj,kjd->kd", bary, self.rest[verts])              # [k,3] to the sample
-        normals = np.stack([np.repeat(rot[:, 1][None], len(verts), axis=0),
-                            np.repeat(rot[:, 2][None], len(verts), axis=0)], axis=1)   # [k,2,3]: y then z
-        targets = np.einsum("kad,kd->ka", normals, moved)                               # [k,2]
-        return (np.repeat(verts, 2, axis=0), np.repeat(bary, 2, axis=0), normals.reshape(-1, 3),
-                targets.reshape(-1))
+        normals = rot[:, 1:].T                                                          # [2,3]: y then z
+        return (np.repeat(verts, 2, axis=0), np.repeat(bary, 2, axis=0), np.tile(normals, (len(verts), 1)),
+                (moved @ normals.T).reshape(-1))
 
     # -- response ---------------------------------------------------------------------------------------------
     def step(self, previous: None, pose_prev: np.ndarray, pose: np.ndarray) -> tuple[None, np.ndarray]:
