@@ -162,3 +162,29 @@ def test_load_ipc_bunny_and_ci_bunny():
 def test_surface_edges_unique_sorted():
     f = np.array([[0, 1, 2], [2, 1, 3]])
     assert surface_edges(f).tolist() == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+
+
+def test_first_hits_are_the_nearest_crossing_of_each_parallel_ray_or_none():
+    from colgnn_core.geometry.rays import first_hits, ray_faces
+
+    # two stacked unit triangles at z = 1 and z = 2 (the upper listed first), and one off to the side
+    base = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    tri = np.stack([base + [0, 0, 2], base + [0, 0, 1], base + [5, 0, 1]])
+    origins = np.array([[0.2, 0.3, 0.0], [0.2, 0.3, 1.5], [0.9, 0.9, 0.0], [0.2, 0.3, 3.0], [5.1, 0.1, -1.0]])
+    face, bary = first_hits(tri, origins, np.array([0.0, 0.0, 1.0]))
+    assert face.tolist() == [1, 0, -1, -1, 2]           # nearest first; outside the triangle, or behind: none
+    np.testing.assert_allclose(bary[0], [0.5, 0.2, 0.3], atol=1e-12)
+    assert not bary[2].any()
+    rng = np.random.default_rng(0)
+    soup = rng.normal(size=(60, 3, 3))
+    rays = rng.normal(size=(40, 3)) * 0.3
+    d = np.array([0.3, -0.2, 1.0])
+    face, bary = first_hits(soup, rays, d)
+    assert (face >= 0).sum() >= 5
+    for s in range(len(rays)):                           # the same as the nearest of ray_faces' hits
+        hit, t, b = ray_faces(soup, rays[s], d)
+        if not hit.any():
+            assert face[s] == -1
+            continue
+        i = int(np.flatnonzero(hit)[np.argmin(t[hit])])
+        assert face[s] == i and np.allclose(bary[s], b[i])

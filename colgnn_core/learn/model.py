@@ -76,7 +76,8 @@ class ModelConfig:
                                       # the full banana's contact prior: 280 ms a step on a long contact, at ci 1 ms)
     prior_compliance: str = ""        # contact_prior or edge_prior only: "" exact; "modal" keeps the prior on the
                                       # scene's own mesh in real time (sim.compliance: 5-9 ms a step in contact
-                                      # on the full banana, where the exact one takes 60-1,000 ms)
+                                      # on the full banana, where the exact one takes 60-1,000 ms);
+                                      # "modal_response" reads the response from it too (sim.prior.COMPLIANCES)
     prior_input: bool = True          # a model with a physics prior: its nodes see the prior (PRIOR_FEATURES).
                                       # False: the prior is only added to the output, so the network does not wait
                                       # for it and the stepper solves it beside the network (runtime.prior_worker)

@@ -20,7 +20,9 @@ seed 11, prior alone; docs/FIDELITY.md, sessions 43-44).
   M^T N_UU M with B = M^T Phi_U [k,m]: O(k^2 m), about 1 ms for 163 rows at 150 modes.
 * **The response exactly**, by one back-substitution (2.5 ms on the full banana). The modes' response scored 0.167
   against 0.127 on validation seed 11: a point force's far field is not smooth in K's lowest modes, while the
-  multipliers that the dual gives are.
+  multipliers that the dual gives are. Or, where even that is too slow (``read``: 16 ms on the full torus),
+  from the modes and the near field at the graph's nodes only, in about 2 ms: with the near field the torus's edge
+  prior scores as the exact one does (docs/FIDELITY.md, session 49).
 * **Set-up**: a shift-invert Lanczos for the modes and one back-substitution per surface coordinate for the near
   field (17 s on the full banana), kept on disk (:func:`cache_dir`), keyed by K's fingerprint and the settings.
 
@@ -92,10 +94,12 @@ class ModalCompliance:
     """K^-1 ~ Phi Lambda^-1 Phi^T + N (module docstring) for ``stiffness``.
 
     surface: [S] mesh ids of the vertices the tool can touch (glued ones are dropped); modes: m; radius: the near
-    field's reach (m); cache: folder for the set-up (None: no disk cache)."""
+    field's reach (m); cache: folder for the set-up (None: no disk cache); read: None answers :meth:`response`
+    exactly, by a back-substitution; mesh ids [R] answer it from the modes and the near field at those vertices
+    only (the surface, where the near field lives, should be among them; elsewhere the response reads 0)."""
 
     def __init__(self, stiffness: RestStiffness, surface: np.ndarray, modes: int, radius: float,
-                 cache: Path | None = None):
+                 cache: Path | None = None, read: np.ndarray | None = None):
         self.stiffness = stiffness
         surface = np.asarray(surface, dtype=np.int64)
         surface = np.unique(surface[stiffness.free_index[surface] >= 0])
@@ -118,18 +122,26 @@ class ModalCompliance:
                     np.savez(fh, inv_lam=self.inv_lam, phi=self.phi, near_data=self.near.data,
                              near_indices=self.near.indices, near_indptr=self.near.indptr)
         blocks = self.near.tobsr(blocksize=(3, 3))            # N's 3x3 vertex blocks, by free vertex row
+        self._read_rows, self._phi_read, self._near_columns = None, None, None
+        if read is not None:
+            read = np.asarray(read, dtype=np.int64)
+            self._read_rows = coordinates(stiffness, np.unique(read[stiffness.free_index[read] >= 0]))
+            # float32: the product is memory-bound (full torus, 15,252 rows x 150 modes: 4.3 ms in float64, 1.4 ms)
+            self._phi_read = np.ascontiguousarray(self.phi[self._read_rows], dtype=np.float32)
+            self._near_columns = self.near.T   # N is symmetric: its transpose is N by columns, without a copy
         self._block_ptr, self._block_col, self._block = blocks.indptr, blocks.indices, blocks.data
         # Load the compiled kernel now, not at the first contact: there it cost a step 100-200 ms (a bench's p95)
         self.dual(surface[:1], sparse.csc_matrix(np.ones((3, 1))))
 
     @classmethod
-    def for_surface(cls, stiffness: RestStiffness, faces: np.ndarray, cache: Path | None = None
-                    ) -> "ModalCompliance":
-        """MODES modes and a near field of NEAR_FIELD_EDGES mean edges of the surface ``faces`` [F,3] at the rest."""
+    def for_surface(cls, stiffness: RestStiffness, faces: np.ndarray, cache: Path | None = None,
+                    read: np.ndarray | None = None) -> "ModalCompliance":
+        """MODES modes and a near field of NEAR_FIELD_EDGES mean edges of the surface ``faces`` [F,3] at the rest;
+        ``read``: as the constructor's."""
         faces = np.asarray(faces, dtype=np.int64)
         tri = stiffness.rest[faces]
         edge = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
-        return cls(stiffness, np.unique(faces), MODES, NEAR_FIELD_EDGES * edge, cache=cache)
+        return cls(stiffness, np.unique(faces), MODES, NEAR_FIELD_EDGES * edge, cache=cache, read=read)
 
     def _lowest_modes(self) -> tuple[np.ndarray, np.ndarray]:
         """(1/Lambda [m] (m/N), Phi [3N_free,m]): K's m lowest eigenpairs by shift-invert Lanczos about 0."""
@@ -184,9 +196,21 @@ class ModalCompliance:
         return self.near[own][:, own].toarray()
 
     def response(self, vertices: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """[3N_free] (m): the free displacement for forces ``w`` [3U] (N) on ``vertices`` [U], exact: one
-        back-substitution (2.5 ms on the full banana). The modes' response (1.4 ms at 300 modes) scored 0.167 where
-        the exact one scores 0.127 on validation seed 11: a point force's far field is not smooth in K's modes."""
+        """[3N_free] (m): the free displacement for forces ``w`` [3U] (N) on ``vertices`` [U].
+
+        Without ``read``: exact, one back-substitution (2.5 ms on the full banana, 16 ms on the full torus). The
+        modes' response alone (1.4 ms at 300 modes) scored 0.167 where the exact one scores 0.127 on the banana's
+        validation seed 11: a point force's far field is not smooth in K's modes.
+        With ``read``: Phi_R Lambda^-1 Phi_U^T w + N_{:,U} w at the ``read`` vertices (0 elsewhere). The near field
+        gives the dent that the modes miss: the edge prior alone on the full torus scored 0.281 / 0.337 on validation
+        and 0.436 / 0.410 / 0.624 / 0.669 held out, where the exact response scores 0.269 / 0.315 and 0.448 / 0.390 /
+        0.628 / 0.675 (docs/FIDELITY.md, session 49), in about 2 ms instead of 16."""
+        if self._read_rows is not None:
+            own = coordinates(self.stiffness, vertices)
+            coef = (self.inv_lam * (w @ self.phi[own])).astype(np.float32)                 # [m]
+            free_u = np.asarray(self._near_columns[:, own] @ w).reshape(-1)                # the surface's near field
+            free_u[self._read_rows] += self._phi_read @ coef
+            return free_u
         rhs = np.zeros(3 * self.stiffness.n_free)
         rhs[coordinates(self.stiffness, vertices)] = w
         return self.stiffness.solve(rhs)

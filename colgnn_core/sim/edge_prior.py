@@ -28,10 +28,13 @@ Measured on ``knife_torus`` full (session 48), all vertices: alone 0.350 / 0.480
 sequences (``rest + correction`` 0.858 / 0.913 / 0.820; session 24's network 0.398 / 0.409 / 0.270), the same behind
 the correction, and 0.650 there on the held-out press and drag (1.170; the network 0.714).
 
-Cost: the rays are cast only at the faces that straddle the blade's plane (a strip a face wide), and the solve
-has two rows a carried point (exact K^-1 at ``ci``, ``sim.compliance.ModalCompliance`` on a fine mesh). On the full
-torus the modal response is one back-substitution with the whole Cholesky factor, 16 ms a call in contact: twice
-the network, so a model with this prior steps in 23.6 ms even with the prior beside the network (session 48).
+Cost: the rays are cast, all in one compiled call, only at the faces that straddle the blade's plane (a strip a
+face wide; 0.4 ms a step on the full torus), and the solve has two rows a carried point (exact K^-1 at ``ci``,
+``sim.compliance.ModalCompliance`` on a fine mesh). On the full torus the exact response is one back-substitution
+with the whole Cholesky factor, 16 ms a call in contact: twice the network, so a model with it stepped in 23.6 ms
+even with the prior beside the network (session 48). ``compliance="modal_response"`` reads the response from the
+modes and the near field at the graph's nodes instead: about 2 ms, and as accurate alone (docs/FIDELITY.md,
+session 49).
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 
 from colgnn_core.errors import InputError
-from colgnn_core.geometry.rays import ray_faces
+from colgnn_core.geometry.rays import first_hits
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.sim.compliance import ExactCompliance, ModalCompliance
 from colgnn_core.sim.contact_prior import ContactPrior, EqualityRows
@@ -71,7 +74,8 @@ class EdgePrior:
         self.stiffness, self.rest, self.nodes = self.contact.stiffness, self.contact.rest, self.contact.nodes
         self.gap = self.contact.gap
         self.faces = np.asarray(scene.object.faces, dtype=np.int64)   # the whole closed surface (inside tests)
-        edges = self.rest[self.faces] - self.rest[np.roll(self.faces, 1, axis=1)]
+        self.tri = np.ascontiguousarray(self.rest[self.faces])         # [F,3,3] (m) rest triangles, read every step
+        edges = self.tri - np.roll(self.tri, 1, axis=1)
         spacing = float(np.linalg.norm(edges, axis=2).mean())
         half = 0.5 * float(scene.tool.params["length"])
         self.edge_x = np.linspace(-half, half, max(2, int(np.ceil(2 * half / spacing)) + 1))  # [S] (m), tool x
@@ -84,27 +88,22 @@ class EdgePrior:
         rot = quat_to_matrix(pose[3:])
         up = rot[:, 2]
         samples = pose[:3] + np.outer(self.edge_x, rot[:, 0]) - self.gap * up          # [S,3]
-        # The rays lie in the blade's plane: only faces that straddle it can be crossed.
-        y = (self.rest[self.faces] - pose[:3]) @ rot[:, 1]                               # [F,3] across the blade
-        strip = np.flatnonzero((y.min(axis=1) <= 0.0) & (y.max(axis=1) >= 0.0))
-        faces, bary, points = [], [], []
-        tri = self.rest[self.faces[strip]]
-        outward = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ up     # [F'] > 0: the ray leaves there
-        for s in samples:
-            hit, t, b = ray_faces(tri, s, up)
-            if not hit.any():
-                continue
-            i = int(np.flatnonzero(hit)[np.argmin(t[hit])])
-            # Inside when the first face the ray meets is one it leaves through. Not a parity count: a ray in the
-            # blade's plane often runs through a row of mesh edges, where both faces of an edge report the hit.
-            if outward[i] <= 0.0:
-                continue
-            faces.append(int(strip[i]))
-            bary.append(b[i])
-            points.append(s)
-        if not faces:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
-        return np.asarray(faces, dtype=np.int64), np.stack(bary), np.stack(points)
+        # The rays lie in the blade's plane: only faces that straddle it can be crossed. (Per-column minimum and
+        # maximum: numpy's reductions over a 3-long axis cost the full torus 1.6 ms a step, these 0.05.)
+        y = (self.tri.reshape(-1, 3) @ rot[:, 1]).reshape(-1, 3) - pose[:3] @ rot[:, 1]     # [F,3] across it
+        low = np.minimum(np.minimum(y[:, 0], y[:, 1]), y[:, 2])
+        high = np.maximum(np.maximum(y[:, 0], y[:, 1]), y[:, 2])
+        strip = np.flatnonzero((low <= 0.0) & (high >= 0.0))
+        tri = self.tri[strip]
+        first, bary = first_hits(tri, samples, up)
+        hit = np.flatnonzero(first >= 0)
+        outward = np.einsum("kd,d->k", np.cross(tri[first[hit], 1] - tri[first[hit], 0],
+                                                tri[first[hit], 2] - tri[first[hit], 0]), up)
+        # Inside when the first face the ray meets is one it leaves through (> 0 along the ray). Not a parity count:
+        # a ray in the blade's plane often runs through a row of mesh edges, where both faces of an edge report the
+        # hit.
+        inside = hit[outward > 0.0]
+        return strip[first[inside]], bary[inside], samples[inside]
 
     def edge_rows(self, pose: np.ndarray) -> EqualityRows | None:
         """The equality rows (module docstring) of the points the edge at ``pose`` [7] carries; None without any,
