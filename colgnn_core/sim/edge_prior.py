@@ -97,8 +97,8 @@ class EdgePrior:
         tri = self.tri[strip]
         first, bary = first_hits(tri, samples, up)
         hit = np.flatnonzero(first >= 0)
-        outward = np.einsum("kd,d->k", np.cross(tri[first[hit], 1] - tri[first[hit], 0],
-                                                tri[first[hit], 2] - tri[first[hit], 0]), up)
+        met = tri[first[hit]]                                                           # [H,3,3]
+        outward = np.cross(met[:, 1] - met[:, 0], met[:, 2] - met[:, 0]) @ up
         # Inside when the first face the ray meets is one it leaves through (> 0 along the ray). Not a parity count:
         # a ray in the blade's plane often runs through a row of mesh edges, where both faces of an edge report the
         # hit.
