@@ -171,20 +171,21 @@ def test_first_hits_are_the_nearest_crossing_of_each_parallel_ray_or_none():
     base = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
     tri = np.stack([base + [0, 0, 2], base + [0, 0, 1], base + [5, 0, 1]])
     origins = np.array([[0.2, 0.3, 0.0], [0.2, 0.3, 1.5], [0.9, 0.9, 0.0], [0.2, 0.3, 3.0], [5.1, 0.1, -1.0]])
-    face, bary = first_hits(tri, origins, np.array([0.0, 0.0, 1.0]))
+    face, t, bary = first_hits(tri, origins, np.array([0.0, 0.0, 1.0]))
     assert face.tolist() == [1, 0, -1, -1, 2]           # nearest first; outside the triangle, or behind: none
+    np.testing.assert_allclose(t, [1.0, 0.5, np.inf, np.inf, 2.0])
     np.testing.assert_allclose(bary[0], [0.5, 0.2, 0.3], atol=1e-12)
     assert not bary[2].any()
     rng = np.random.default_rng(0)
     soup = rng.normal(size=(60, 3, 3))
     rays = rng.normal(size=(40, 3)) * 0.3
     d = np.array([0.3, -0.2, 1.0])
-    face, bary = first_hits(soup, rays, d)
+    face, t, bary = first_hits(soup, rays, d)
     assert (face >= 0).sum() >= 5
     for s in range(len(rays)):                           # the same as the nearest of ray_faces' hits
-        hit, t, b = ray_faces(soup, rays[s], d)
+        hit, ts, b = ray_faces(soup, rays[s], d)
         if not hit.any():
             assert face[s] == -1
             continue
-        i = int(np.flatnonzero(hit)[np.argmin(t[hit])])
-        assert face[s] == i and np.allclose(bary[s], b[i])
+        i = int(np.flatnonzero(hit)[np.argmin(ts[hit])])
+        assert face[s] == i and t[s] == ts[i] and np.allclose(bary[s], b[i])

@@ -22,10 +22,12 @@ def ray_faces(tri: np.ndarray, origin: np.ndarray, direction: np.ndarray
     return _ray_faces(tri, o, d)
 
 
-def first_hits(tri: np.ndarray, origins: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def first_hits(tri: np.ndarray, origins: np.ndarray, direction: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For the parallel rays origins [S,3] + t direction [3], t > 0, against the triangles ``tri`` [F,3,3]: (the
-    first triangle each ray crosses [S] int64, -1 where none; the barycentric weights there [S,3]). Ties in t go to
-    the lower index, as ``argmin`` over :func:`ray_faces`'s hits gives.
+    first triangle each ray crosses [S] int64, -1 where none; its ray parameter t [S], inf where none; the
+    barycentric weights there [S,3]). Ties in t go to the lower index, as ``argmin`` over :func:`ray_faces`'s hits
+    gives.
 
     Why one call: the edge prior casts about twenty rays a step, and a call a ray cost more in Python than the
     tests themselves."""
@@ -66,14 +68,15 @@ def _ray_faces(tri: np.ndarray, origin: np.ndarray, d: np.ndarray) -> tuple[np.n
 
 
 @njit(cache=True)
-def _first_hits(tri: np.ndarray, origins: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _first_hits(tri: np.ndarray, origins: np.ndarray, d: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     face = np.full(origins.shape[0], -1, dtype=np.int64)
+    best = np.full(origins.shape[0], np.inf)
     bary = np.zeros((origins.shape[0], 3))
     for s in range(origins.shape[0]):
-        best = np.inf
         for f in range(tri.shape[0]):
             hit, t, u, v = _crossing(tri, f, origins[s], d)
-            if hit and t < best:
-                best, face[s] = t, f
+            if hit and t < best[s]:
+                best[s], face[s] = t, f
                 bary[s, 0], bary[s, 1], bary[s, 2] = 1.0 - u - v, u, v
-    return face, bary
+    return face, best, bary

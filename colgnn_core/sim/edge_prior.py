@@ -95,7 +95,7 @@ class EdgePrior:
         high = np.maximum(np.maximum(y[:, 0], y[:, 1]), y[:, 2])
         strip = np.flatnonzero((low <= 0.0) & (high >= 0.0))
         tri = self.tri[strip]
-        first, bary = first_hits(tri, samples, up)
+        first, _, bary = first_hits(tri, samples, up)
         hit = np.flatnonzero(first >= 0)
         met = tri[first[hit]]                                                           # [H,3,3]
         outward = np.cross(met[:, 1] - met[:, 0], met[:, 2] - met[:, 0]) @ up

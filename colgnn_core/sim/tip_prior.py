@@ -36,7 +36,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from colgnn_core.errors import InputError
-from colgnn_core.geometry.rays import ray_faces
+from colgnn_core.geometry.rays import first_hits, ray_faces
 from colgnn_core.geometry.transforms import quat_to_matrix
 from colgnn_core.sim.contact_prior import ContactPrior, point_rows
 from colgnn_core.sim.rest_stiffness import RestStiffness
@@ -98,12 +98,10 @@ class TipPrior:
                    ) -> tuple[TipContact, float] | None:
         """(the rest-surface point, its distance in units of ``direction``) where the ray from ``origin`` [3] along
         ``direction`` [3] first crosses the rest surface within ``limit``; None when it does not."""
-        hit, t, bary = ray_faces(self.triangles, origin, direction)
-        hit &= t <= limit
-        if not hit.any():
+        face, t, bary = first_hits(self.triangles, np.asarray(origin, dtype=np.float64)[None], direction)
+        if face[0] < 0 or t[0] > limit:
             return None
-        i = int(np.flatnonzero(hit)[np.argmin(t[hit])])
-        return TipContact(i, tuple(float(b) for b in bary[i])), float(t[i])
+        return TipContact(int(face[0]), tuple(float(b) for b in bary[0])), float(t[0])
 
     def point(self, contact: TipContact) -> np.ndarray:
         """The contact's material point in the rest shape [3] (m)."""
