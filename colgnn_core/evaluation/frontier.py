@@ -204,9 +204,18 @@ def format_frontier(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _model_key(label: str) -> str:
+    """A network point's model (its label without " raw" / " + correction"); other labels unchanged."""
+    for suffix in (" raw", " + correction"):
+        if label.endswith(suffix):
+            return label[: -len(suffix)]
+    return label
+
+
 def plot_frontier(result: dict, path: Path) -> Path:
-    """Log-x scatter of ms/step against the relative error (all vertices), crossings annotated; written atomically
-    as PNG."""
+    """Log-x scatter of ms/step against the relative error (all vertices); written atomically as PNG. Each network
+    is a number beside its two points (raw, corrected), keyed below the plot with its crossings: on a crowded
+    frontier, names beside the points overlap."""
     import matplotlib  # lazy: matplotlib is heavy and only the plots need it
 
     matplotlib.use("Agg")
@@ -214,7 +223,15 @@ def plot_frontier(result: dict, path: Path) -> Path:
 
     style = {"raw": ("o", "tab:orange"), "corrected": ("s", "tab:blue"), "baseline": ("x", "tab:gray"),
              "ipc": ("^", "tab:green")}
-    fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=110)
+    nets = [p for p in result["points"] if p["kind"] in ("raw", "corrected")]
+    best = {}
+    for p in nets:  # models ordered by their best error, the best first
+        key = _model_key(p["label"])
+        best[key] = min(best.get(key, np.inf), p["relative"])
+    number = {key: k + 1 for k, key in enumerate(sorted(best, key=best.get))}
+    key_height = 0.3 + 0.13 * len(number)  # inches: the key's rows below the plot
+    fig, (ax, key_ax) = plt.subplots(2, 1, figsize=(7.5, 4.8 + key_height), dpi=110,
+                                     gridspec_kw={"height_ratios": [4.8, key_height]})
     for kind, (marker, color) in style.items():
         pts = [p for p in result["points"] if p["kind"] == kind]
         if pts:
@@ -222,8 +239,9 @@ def plot_frontier(result: dict, path: Path) -> Path:
                        label={"raw": "GNN raw", "corrected": "GNN + correction", "baseline": "rest + correction",
                               "ipc": "IPC solver"}[kind])
         for p in pts:
-            ax.annotate(f"{p['label'].split(' (')[0]}\n{p['crossings']} crossings", (p["ms_median"],
-                        p["relative"]), fontsize=6, xytext=(4, 3), textcoords="offset points")
+            text = (str(number[_model_key(p["label"])]) if kind in ("raw", "corrected")
+                    else f"{p['label']}\n{p['crossings']} crossings")
+            ax.annotate(text, (p["ms_median"], p["relative"]), fontsize=6, xytext=(4, 3), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_xlabel("ms per step (median, log scale)")
     ax.axhline(1.0, color="tab:gray", lw=0.8, ls="--")  # "nothing moves"
@@ -231,6 +249,12 @@ def plot_frontier(result: dict, path: Path) -> Path:
     ax.set_title(f"{result['scene']} ({result['resolution']}): speed against error")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
+    crossings = {(_model_key(p["label"]), p["kind"]): p["crossings"] for p in nets}
+    key_lines = [f"{k}  {key}: crossings raw {crossings.get((key, 'raw'), '-')}, corrected "
+                 f"{crossings.get((key, 'corrected'), '-')}" for key, k in number.items()]
+    key_ax.axis("off")
+    key_ax.text(0.0, 1.0, "\n".join(key_lines), fontsize=6.5, family="monospace", va="top",
+                transform=key_ax.transAxes)
     return save_png(fig, path)
 
 
