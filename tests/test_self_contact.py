@@ -159,7 +159,9 @@ def test_the_fallback_repairs_a_triangle_that_the_last_state_left_flipped(tool):
     assert out.fallback and out.invalid_before > 0
     assert_clean(stage, F, x0, out, tool, T, T)  # it used to keep x0's flipped triangles, step after step
     far = np.linalg.norm(rest - rest[centre], axis=1) > 3 * h
-    np.testing.assert_array_equal(out.positions[far], x0[far])  # the fallback keeps x0 elsewhere
+    # The fallback's local tier sends only a zone around the defect back to x0: elsewhere the proposal stands.
+    assert out.local
+    np.testing.assert_array_equal(out.positions[far], x0[far] + [0.0, 0.0, 1e-4])
 
 
 def test_the_fallback_repairs_a_flipped_triangle_that_its_rigid_region_carries_with_the_tool(tool):
@@ -180,7 +182,10 @@ def test_the_fallback_repairs_a_flipped_triangle_that_its_rigid_region_carries_w
     assert_clean(stage, F, x0, out, tool, T0, T1)  # they used to move rigidly with the tool, flipped
 
 
-def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pair_free_state(tool):
+def collapsed_corner_while_dragging(tool):
+    """A 3 mm drag over a patch whose corner triangle, far from the tool, collapses in the proposal (a pair-free
+    state with an invalid triangle). Returns (stage, corrector, rest, faces, x0, tool-corrected x1, its check,
+    poses, tool vertices)."""
     rest, F = patch(0.0)
     x0 = rest + np.array([0.0, 0.0, 0.002])
     stage = SelfContact(F, len(rest), rest, max_rounds=0)  # no repair rounds: the input is the only checked state
@@ -192,6 +197,12 @@ def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pai
     x1[0] += 0.95 * (0.5 * (x0[b] + x0[c]) - x0[0])  # the corner triangle, far from the tool, collapsed
     x1 = corr.correct(x0, x1, p0, p1, T0, T1).positions
     chk = stage.check(x0, x1)
+    return stage, corr, rest, F, x0, x1, chk, (p0, p1), (T0, T1)
+
+
+def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pair_free_state(tool, monkeypatch):
+    monkeypatch.setattr(SelfContact, "_local_fallback", lambda self, *args: None)  # the global tiers alone
+    stage, corr, rest, F, x0, x1, chk, (p0, p1), (T0, T1) = collapsed_corner_while_dragging(tool)
     assert chk.pairs == 0 and chk.invalid.sum() > 0
     fallback = x0.copy()
     region = corr.rigid_fallback(x0, fallback, p0, p1, T0, T1, corr.clearance.clearance)
@@ -202,6 +213,19 @@ def test_a_fallback_that_would_carry_its_region_with_the_tool_gives_way_to_a_pai
     assert not self_intersects(out.positions, F)
     assert not tool_intersects(out.positions, F, T1, tool.faces)
     assert tool_step_free(x0, out.positions, F, T0, T1, tool.faces)
+
+
+def test_the_local_fallback_repairs_a_collapsed_triangle_far_from_a_dragging_tool(tool):
+    """The same step with the local tier: only the collapsed corner and a ring around it go back to x0, the rest
+    keeps the tool-corrected proposal (the tool pass's own check passes, so nothing is carried), and the result is
+    clean, the collapsed triangle included."""
+    stage, corr, rest, F, x0, x1, chk, (p0, p1), (T0, T1) = collapsed_corner_while_dragging(tool)
+    out = stage.correct(corr, x0, x1, p0, p1, T0, T1)
+    assert out.fallback and out.local and out.region == 0
+    assert_clean(stage, F, x0, out, tool, T0, T1)
+    back = np.all(out.positions == x0, axis=1) & np.any(x1 != x0, axis=1)
+    assert back[0] and np.linalg.norm(rest[back, :2] - rest[0, :2], axis=1).max() < 3 * SIZE / CELLS
+    np.testing.assert_array_equal(out.positions[~back], x1[~back])
 
 
 def stage_counts(rest, F, x):
@@ -238,7 +262,29 @@ def test_fallback_is_clean_for_self_and_tool(tool):
     T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
     c = corr.correct(rest, x1, p0, p1, T0, T1)
     out = stage.correct(corr, rest, c.positions, p0, p1, T0, T1)
-    assert out.fallback and out.region > 0
+    assert out.fallback and out.local and out.region == 0  # the tool pass's check passes: nothing carried
+    assert_clean(stage, F, rest, out, tool, T0, T1)
+    # The local tier: the lower patch's bump goes back to rest where it crossed the upper patch (its top, a zone
+    # grown around the crossing), and keeps the proposal where it crossed nothing (its foot).
+    assert out.local
+    n = len(rest) // 2
+    stayed = np.all(out.positions[:n] == rest[:n], axis=1)
+    kept = np.all(out.positions[:n] == x1[:n], axis=1)
+    assert np.all(stayed | kept) and stayed[n // 2] and (kept & (x1[:n, 2] > 0)).any()
+
+
+def test_the_global_fallback_is_clean_for_self_and_tool(tool, monkeypatch):
+    """The same step when the local tier finds nothing clean (monkeypatched off): the global tier keeps the previous
+    state but where the tool requires."""
+    monkeypatch.setattr(SelfContact, "_local_fallback", lambda self, *args: None)
+    rest, F = two_patches()
+    x1 = bulge(rest)
+    corr = CollisionCorrector(F, len(rest), tool, dhat=5e-4)
+    stage = SelfContact(F, len(rest), rest, max_rounds=0)
+    p0, p1 = pose(0, 0, 0.0165), turned(0.002, 0, 0.015)
+    T0, T1 = tool.world_vertices(p0), tool.world_vertices(p1)
+    out = stage.correct(corr, rest, corr.correct(rest, x1, p0, p1, T0, T1).positions, p0, p1, T0, T1)
+    assert out.fallback and not out.local and out.region > 0
     assert_clean(stage, F, rest, out, tool, T0, T1)
     # The lower patch, which the fallback does not need, stays where it was (its bump is dropped); on the upper one
     # nothing moves farther than the tool's step (the rigid region moves with it, its soft border less).

@@ -633,6 +633,24 @@ class CollisionCorrector:
         out.timings_ms["total"] = 1e3 * (time.perf_counter() - t_start)
         return out
 
+    def step_clean(self, x0: np.ndarray, x1: np.ndarray, pose0: np.ndarray, pose1: np.ndarray, T0: np.ndarray,
+                   T1: np.ndarray, *, clearance: bool = True) -> bool:
+        """Whether the step ``x0 -> x1`` ([N,3] m, ``x0`` safe) with the tool ``pose0 -> pose1`` (its vertices T0, T1
+        [M,3]) already meets the guarantee, by the check that ends a tool pass out of passes: no crossing, every
+        surface vertex outside the tool mesh's bound, and with ``clearance`` the clearance over the step."""
+        res = self.detector.detect(x0, x1, T0, T1, pose0, pose1, check=False)
+        hits, _, _ = self._hits(res, x1, T1)
+        n_hits = len(hits["vf"]) + len(hits["fv"]) + len(hits["ee"])
+        return self._verified(n_hits, x0, x1, pose0, pose1, T0, T1, clearance)
+
+    def _verified(self, n_hits: int, x0, x1, pose0, pose1, T0, T1, clearance: bool, known=None) -> bool:
+        """The guarantee's check of a step whose detection found ``n_hits`` pairs to resolve (:meth:`step_clean`);
+        ``known``: the first pass's broad phase for the clearance check (``StepClearance.check``)."""
+        d = self._surface_sdf(x1, pose1, self.mesh_margin)
+        if n_hits or np.any(d < self.mesh_margin):
+            return False
+        return not clearance or self.clearance.check(x0, x1, T0, T1, pose0, pose1, known=known).violations == 0
+
     def _tool_pass(self, x0: np.ndarray, x1: np.ndarray, pose0: np.ndarray, pose1: np.ndarray, T0: np.ndarray,
                    T1: np.ndarray, clearance: bool, hold_pushed: bool) -> tuple[CorrectionResult, int]:
         """Steps 1-7 in place on ``x1`` (the proposal's copy) for :meth:`correct`. ``hold_pushed``: step 2 leaves out
@@ -664,13 +682,8 @@ class CollisionCorrector:
             n_hits = len(hits["vf"]) + len(hits["fv"]) + len(hits["ee"])
             if it == self.max_iterations:
                 # Out of budget: only check whether the last pass left anything.
-                d = self._surface_sdf(x1, pose1, self.mesh_margin)
-                clean = n_hits == 0 and not np.any(d < self.mesh_margin)
-                t_resolve += time.perf_counter() - t
-                if clean and clearance:
-                    t = time.perf_counter()
-                    clean = self.clearance.check(x0, x1, T0, T1, pose0, pose1, known=known).violations == 0
-                    t_clear += time.perf_counter() - t
+                clean = self._verified(n_hits, x0, x1, pose0, pose1, T0, T1, clearance, known)
+                t_clear += time.perf_counter() - t
                 break
             start = x1.copy()
             ids = self.surface_ids if active is None else active_ring(active, self.surface)

@@ -47,7 +47,17 @@ return to x0 and the tool pass are deterministic). So when such a round ends whe
 would repeat it: the rounds stop there, with the outcome that running them all would give. On the bunny's family
 trajectories the tool pass left such a fixed point on eight steps in a row, one round before the last.
 
-Fallback, when the rounds run out: the previous published state moved only where the tool requires. Surface vertices
+Fallback, when the rounds run out, in two tiers. The local tier first (since session 52): a zone around the last
+round's failing pairs and new invalid triangles goes back to x0 and the rest of the state keeps the last round's
+tool-corrected positions. The tool guarantee is then either the tool pass's own final check of the whole step
+(:meth:`CollisionCorrector.step_clean`), or, where that fails, the tool's certified fallback applied to that state
+(every triangle certified, :meth:`CollisionCorrector.rigid_fallback`); and the state counts only if the full check
+(the detection above, sound for any state) finds no self pair and no invalid triangle but those already invalid in
+x0, which are then repaired as below (``_repair_kept``). Otherwise the failing vertices join the zone with 1, 2, 4,
+8 rings, up to ``LOCAL_ROUNDS`` tries. So its safety is that of any checked state, and it keeps the network's shape
+everywhere but near the defect, where the global tier below kept x0 over the whole surface. When a pair-free
+state exists and the local tier would carry a region farther than the quiet distance, the global tier decides, as
+before. The global tier: the previous published state moved only where the tool requires. Surface vertices
 start at x0; the tool's certified fallback (:meth:`CollisionCorrector.rigid_fallback`) moves the region it cannot
 certify rigidly with the tool (R x0 + p). Then, repeatedly, every pair and triangle with vertices both inside and
 outside the region is checked (CCD, validity); the vertices of a failing one join the region with a ring around
@@ -126,6 +136,7 @@ MIN_PUSH_TIME = 0.05    # a push at t+1 is (target - d*) / max(t*, this)
 STATELESS_ROUND = max(FILL_ROUNDS, PUSH_ROUNDS)  # from this round on a round depends on its starting state alone
 GROW_DOUBLING = 3       # fallback rounds that grow the region by one ring; later rounds grow by 2, 4, 8, ... rings
 BLEND_RINGS = 6         # the fallback's soft border: rings of a ramp between the carried region and the still surface
+LOCAL_ROUNDS = 4        # the fallback's local tier: tries, the zone sent back to x0 grown by 1, 2, 4, 8 rings
 SOFT_ROUNDS = 4         # soft-border tries, the region grown by the failing pairs and triangles between them
 _NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
@@ -180,6 +191,7 @@ class SelfResult:
     region: int = 0
     fallback_rounds: int = 0
     tool_fallback: bool = False
+    local: bool = False
     moved: int = 0
     timings_ms: dict = field(default_factory=dict)
 
@@ -311,7 +323,14 @@ class SelfContact:
             out.tool_fallback |= c.fallback
         if not clean:
             t = time.perf_counter()
-            fb = self._fallback(corrector, x0, x, pose0, pose1, T0, T1, clearance, give_way=pair_free is not None)
+            fb = self._local_fallback(corrector, x0, x, chk, pose0, pose1, T0, T1, clearance)
+            if fb is not None and pair_free is not None and self.carried(x0, fb[0], fb[1]) > self.quiet:
+                fb = None  # module docstring: a carried region is the worse harm; the global tiers decide
+            if fb is not None:
+                out.local = True
+            else:
+                fb = self._fallback(corrector, x0, x, pose0, pose1, T0, T1, clearance,
+                                    give_way=pair_free is not None)
             if fb is not None:
                 out.fallback_rounds = fb[2]
             if fb is None or (pair_free is not None and self.carried(x0, fb[0], fb[1]) > self.quiet):
@@ -401,6 +420,39 @@ class SelfContact:
                 vids.append(ids[:, k])
                 disps.append((scale * c[:, k])[:, None] * n)
         return merge_pushes(np.concatenate(vids), np.concatenate(disps), "mean")
+
+    def _local_fallback(self, corrector: CollisionCorrector, x0, x, chk: SelfCheck, pose0, pose1, T0, T1,
+                        clearance: bool) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The local tier of the fallback (module docstring): (positions [N,3], rigid region bool [N], rounds), or
+        None. ``x`` [N,3]: the last round's state, ``chk`` its check. A zone around its failing pairs and new invalid
+        triangles goes back to x0, the tool's certified fallback moves what it cannot prove safe, and the state counts
+        only if the full check then finds no pair and no invalid triangle but those invalid in x0; otherwise the
+        failing vertices join the zone with 1, 2, 4, ... rings, up to ``LOCAL_ROUNDS`` times."""
+        F = self.surface.faces
+        c = corrector.clearance.clearance if clearance else 0.0
+        kept = self.validity.invalid(x0)
+        zone = np.zeros(self.n, dtype=np.bool_)
+        zone[F[chk.invalid & ~kept].ravel()] = True
+        if chk.pairs:
+            zone[self.pair_vertices(chk)] = True
+        for k in range(LOCAL_ROUNDS):
+            zone = _grow_rings(zone, 2 ** k, *self.neighbours)
+            base = x.copy()
+            base[zone] = x0[zone]
+            if corrector.step_clean(x0, base, pose0, pose1, T0, T1, clearance=clearance):
+                region = np.zeros(self.n, dtype=np.bool_)  # the tool pass's own check passes: nothing to carry
+            else:
+                region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c)
+            chk = self.check(x0, base)
+            bad = chk.invalid & ~kept
+            if not chk.pairs and not bad.any():
+                return *self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, clearance), k + 1
+            grow = np.zeros(self.n, dtype=np.bool_)
+            grow[F[bad].ravel()] = True
+            if chk.pairs:
+                grow[self.pair_vertices(chk)] = True
+            zone |= grow
+        return None
 
     def _fallback(self, corrector: CollisionCorrector, x0, x, pose0, pose1, T0, T1, clearance: bool, *,
                   give_way: bool = False) -> tuple[np.ndarray, np.ndarray, int] | None:
