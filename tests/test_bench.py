@@ -136,6 +136,7 @@ def test_stability_markdown_writes_one_row_per_scene_and_keeps_the_prose(tmp_pat
     assert f"| `{fx.SCENE}` (ci) | no | 12 + {r['leave_and_settle_steps']} |" in text
     assert f"| {r['tool_intersecting_frames']} ({r['checked_frames']}) |" in text
     assert "| `other` (ci) | no | 5 + 2 | 0 (3) | 1 | – |" in text and "not recorded" in text
+    assert r["machine"].endswith(" cores)") and f"| {r['machine']} | {r['code']} " in text  # each row its machine
     assert main(["bench", "--stability", "--scene", "all", "--markdown", str(page)]) == 2
     assert "one scene at a time" in capsys.readouterr().err
 

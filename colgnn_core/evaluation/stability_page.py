@@ -30,8 +30,8 @@ def stability_row(r: dict) -> str:
             f"{r['rss_mb_start']:.0f} → {r['rss_mb_end']:.0f} | {r['rss_mb_per_1000_steps']:+.2f} | "
             f"{pct(r['rest_rmse_fraction'])} / {pct(r['rest_max_fraction'])} | {r['step_ms_median']:.1f} "
             f"({r['threads']}) | {r['wall_s'] / 60:.0f} min | "
-            f"{'–' if load is None else f'{load:.1f}'} | {r.get('code', 'not recorded')} "
-            f"{r.get('measured_utc', '')} |")
+            f"{'–' if load is None else f'{load:.1f}'} | {r.get('machine', 'not recorded')} | "
+            f"{r.get('code', 'not recorded')} {r.get('measured_utc', '')} |")
 
 
 def stability_markdown(results: list[dict]) -> str:
@@ -39,14 +39,14 @@ def stability_markdown(results: list[dict]) -> str:
     header = ("| scene | self-contact stage | steps | tool-intersecting frames (checked) | self-intersecting frames | "
               "frames with flipped or degenerate faces | fallbacks | RSS start → end (MB) | MB per 1,000 steps | "
               "shape after the tool left: RMSE / max (% bbox diag.) | step ms median (threads) | wall | load | "
-              "code, measured |")
-    table = "\n".join([header, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+              "machine | code, measured |")
+    table = "\n".join([header, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|",
                        *(stability_row(r) for r in results)])
     commands = "\n".join(f"{r.get('command', '(command not recorded)')}" for r in results)
-    m = machine()
-    return (f"Written by `colgnn bench --stability ... --markdown` from the files `<scene>.json` in this folder, on "
-            f"{m.cpu} ({m.cores} cores); do not edit by hand. Each row's load is the 1-minute load average when it "
-            f"finished (above {m.cores} the cores were shared, and the step times are inflated). The commands:\n\n"
+    return ("Written by `colgnn bench --stability ... --markdown` from the files `<scene>.json` in this folder; do "
+            "not edit by hand. Each row gives the machine it ran on (rows from before session 52 did not record it) "
+            "and the 1-minute load average when it finished (above the machine's cores they were shared, and the "
+            "step times are inflated). The commands:\n\n"
             f"```bash\n{commands}\n```\n\n{table}\n")
 
 
@@ -55,7 +55,9 @@ def write_stability_page(result: dict, page: str | Path, command: str) -> Path:
     page = Path(page)
     folder = page.parent
     folder.mkdir(parents=True, exist_ok=True)
+    m = machine()
     stamped = {**result, "command": command, "code": code_version(), "load_average_1min": load_average(),
+               "machine": f"{m.cpu} ({m.cores} cores)",
                "measured_utc": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
     with atomic_write(folder / f"{result['scene']}.json", "w") as fh:
         fh.write(json.dumps(stamped, indent=2) + "\n")
