@@ -283,6 +283,14 @@ class SelfContact:
         F, E = self.surface.faces, self.surface.edges
         return np.unique(np.concatenate([chk.vf[:, 0], F[chk.vf[:, 1]].ravel(), E[chk.ee].ravel()]))
 
+    def failing(self, chk: SelfCheck, faces: np.ndarray) -> np.ndarray:
+        """Bool [N]: the vertices of the triangles ``faces`` (bool [F]) and of ``chk``'s flagged pairs."""
+        mask = np.zeros(self.n, dtype=np.bool_)
+        mask[self.surface.faces[faces].ravel()] = True
+        if chk.pairs:
+            mask[self.pair_vertices(chk)] = True
+        return mask
+
     # -- the stage ------------------------------------------------------------------------------------------------
     def correct(self, corrector: CollisionCorrector, x0: np.ndarray, x1: np.ndarray, pose0, pose1, T0, T1, *,
                 clearance: bool = True) -> SelfResult:
@@ -428,13 +436,9 @@ class SelfContact:
         triangles goes back to x0, the tool's certified fallback moves what it cannot prove safe, and the state counts
         only if the full check then finds no pair and no invalid triangle but those invalid in x0; otherwise the
         failing vertices join the zone with 1, 2, 4, ... rings, up to ``LOCAL_ROUNDS`` times."""
-        F = self.surface.faces
         c = corrector.clearance.clearance if clearance else 0.0
         kept = self.validity.invalid(x0)
-        zone = np.zeros(self.n, dtype=np.bool_)
-        zone[F[chk.invalid & ~kept].ravel()] = True
-        if chk.pairs:
-            zone[self.pair_vertices(chk)] = True
+        zone = self.failing(chk, chk.invalid & ~kept)
         for k in range(LOCAL_ROUNDS):
             zone = _grow_rings(zone, 2 ** k, *self.neighbours)
             base = x.copy()
@@ -447,10 +451,7 @@ class SelfContact:
             bad = chk.invalid & ~kept
             if not chk.pairs and not bad.any():
                 return *self._repair_kept(corrector, x0, base, region, pose0, pose1, T0, T1, clearance), k + 1
-            grow = np.zeros(self.n, dtype=np.bool_)
-            grow[F[bad].ravel()] = True
-            if chk.pairs:
-                grow[self.pair_vertices(chk)] = True
+            grow = self.failing(chk, bad)
             zone |= grow
         return None
 
@@ -476,10 +477,7 @@ class SelfContact:
                 return None
             chk = self.check(x0, base, moving=region)
             mixed = chk.invalid & ~kept & ~region[F].all(axis=1)
-            grow = np.zeros(self.n, dtype=np.bool_)
-            grow[F[mixed].ravel()] = True
-            if chk.pairs:
-                grow[self.pair_vertices(chk)] = True
+            grow = self.failing(chk, mixed)
             if not (grow & ~region).any():
                 break
             # More rings than needed, and twice as many every round from the GROW_DOUBLING-th on: each round is a
@@ -498,7 +496,6 @@ class SelfContact:
         region); the result counts only if the full check finds no pair and no invalid triangle but those of
         ``kept`` (bool [F], invalid in x0). Otherwise the failing pairs' and triangles' vertices, with a ring, join
         the rigid region, up to ``SOFT_ROUNDS`` times. ``base`` [N,3]: x0 with ``region`` moved rigidly."""
-        F = self.surface.faces
         R, p = rigid_step(pose0, pose1)
         region, base = region.copy(), base.copy()  # the caller's state stays as it was if this gives up
         for _ in range(SOFT_ROUNDS):
@@ -519,10 +516,7 @@ class SelfContact:
             bad = chk.invalid & ~kept
             if not chk.pairs and not bad.any():
                 return trial, region | rigid
-            grow = np.zeros(self.n, dtype=np.bool_)
-            grow[F[bad].ravel()] = True
-            if chk.pairs:
-                grow[self.pair_vertices(chk)] = True
+            grow = self.failing(chk, bad)
             region = corrector.rigid_fallback(x0, base, pose0, pose1, T0, T1, c,
                                               region=rigid | _grow(grow, *self.neighbours))
         return None
