@@ -170,3 +170,40 @@ def test_the_prior_baseline_runs_the_prior_alone_behind_the_stepper(bunny, side_
     for t in range(1, len(poses)):
         np.testing.assert_allclose(stepper.step(poses[t]) - rest[template.object_nodes], expect[t], atol=1e-12)
     assert stepper.state.contact is None  # the tip left: nothing carried
+
+
+def test_a_models_tip_kappa_reaches_its_prior_behind_the_stepper(bunny):
+    """`tip_kappa` (ModelConfig) sets the slide rule of the prior that training and the stepper build: a drag's
+    carried point then stays within tip_kappa x depth of the axis point, not KAPPA x depth."""
+    from colgnn_core.runtime.models import PriorModel
+    from colgnn_core.runtime.stepper import RawStepper
+    from colgnn_core.sim.prior import physics_prior
+
+    scene, rest, prior = bunny
+    template = template_from_scene(scene, surface_only=True)
+    config = ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True, tip_prior=True,
+                         tip_kappa=0.5)
+    assert config.prior_options == {"kappa": 0.5}
+    assert ModelConfig(order=0, quasi_static=True, tip_prior=True).prior_options == {}  # older checkpoints: KAPPA
+    stepper = RawStepper(PriorModel(template, rest[template.object_nodes], config), scene, rest_mesh=rest)
+    z = _surface_z(prior, (0.03, -0.02))
+    depth = 0.006
+    poses = np.stack([_pose((0.03, -0.02, z + 0.01))]
+                     + [_pose((0.03 + dx, -0.02, _surface_z(prior, (0.03 + dx, -0.02)) - depth))
+                        for dx in (0.0, 0.004, 0.008, 0.012)])
+    stepper.reset(rest[template.object_nodes], poses[0])
+    got = np.stack([stepper.step(p) - rest[template.object_nodes] for p in poses[1:]])
+    nodes = template.object_nodes
+    np.testing.assert_allclose(got, TipPrior(scene, rest, nodes, kappa=0.5).rollout(poses)[1:], atol=1e-12)
+    np.testing.assert_allclose(got, physics_prior("tip", scene, rest, nodes, options={"kappa": 0.5}).rollout(poses)[1:],
+                               atol=1e-12)
+    # 12 mm of drag at 6 mm depth: KAPPA = 2 still carries the entry point, 0.5 has let it slide
+    assert np.abs(got[-1] - TipPrior(scene, rest, nodes).rollout(poses)[-1]).max() > 1e-3
+    with pytest.raises(InputError, match="no setting"):
+        physics_prior("contact", load_scene("sphere_mat", "ci"), rest, nodes, options={"kappa": 1.0})
+    with pytest.raises(InputError, match="tip_kappa needs tip_prior"):
+        Simulator(template, ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True,
+                                        tip_kappa=1.0))
+    with pytest.raises(InputError, match="tip_kappa must be"):
+        Simulator(template, ModelConfig(latent=8, message_passing_steps=1, mlp_layers=1, order=0, quasi_static=True,
+                                        tip_prior=True, tip_kappa=-1.0))

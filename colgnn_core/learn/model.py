@@ -32,6 +32,7 @@ from colgnn_core.learn.core_model import EdgeSet, EncodeProcessDecode, MultiGrap
 from colgnn_core.learn.graph import (MESH_EDGE_FEATURES, WORLD_EDGE_FEATURES, GraphInputs, GraphTemplate,
                                      build_graph, coarse_edges, coarse_template, mesh_edge_set)
 from colgnn_core.learn.normalizer import Normalizer
+from colgnn_core.sim.tip_prior import KAPPA
 
 EDGE_SETS = {"mesh": MESH_EDGE_FEATURES, "world": WORLD_EDGE_FEATURES}
 
@@ -67,6 +68,9 @@ class ModelConfig:
                                       # every node (PRIOR_FEATURES); the network learns the remainder
     side_contact: bool = False        # tip_prior only: the cone's side also holds every face it reaches outside it
                                       # (sim.tip_prior.TipSidePrior: a pocket as wide as the cone)
+    tip_kappa: float = KAPPA          # tip_prior only: the carried point stays within tip_kappa x the tip's depth
+                                      # of the point where the axis leaves the rest shape (sim.tip_prior's slide
+                                      # rule); checkpoints from before this option used the default
     contact_prior: bool = False       # quasi_static only: the same with sim.contact_prior (a frictionless smooth
                                       # tool holds every face it reaches on its surface)
     edge_prior: bool = False          # quasi_static only: the same with sim.edge_prior (a blade's edge carries the
@@ -90,6 +94,11 @@ class ModelConfig:
         if self.edge_prior:
             return "edge"
         return "contact" if self.contact_prior else None
+
+    @property
+    def prior_options(self) -> dict:
+        """Keyword arguments of sim.prior.physics_prior for this model's prior (empty: the prior's defaults)."""
+        return {"kappa": float(self.tip_kappa)} if self.tip_prior and self.tip_kappa != KAPPA else {}
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -279,6 +288,10 @@ class Simulator(nn.Module):
         if sum((config.tip_prior, config.contact_prior, config.edge_prior)) > 1:
             raise InputError("tip_prior, contact_prior and edge_prior exclude each other: a model adds one physics "
                              "prior")
+        if not (np.isfinite(config.tip_kappa) and config.tip_kappa >= 0):
+            raise InputError(f"tip_kappa must be a finite number >= 0, got {config.tip_kappa}")
+        if config.tip_kappa != KAPPA and not config.tip_prior:
+            raise InputError("tip_kappa needs tip_prior (it is the tip prior's slide rule)")
         if config.side_contact and not config.tip_prior:
             raise InputError("side_contact needs tip_prior (it widens the sharp tip's pocket to the cone)")
         if config.prior_mesh and not config.prior_kind:

@@ -313,14 +313,14 @@ def _surface_rest(dataset: FrameDataset, template) -> SurfaceRest:
 
 
 def _attach_prior(scene, dataset: FrameDataset, template, kind: str, progress: bool, mesh: str = "",
-                  compliance: str = "") -> None:
+                  compliance: str = "", options: dict | None = None) -> None:
     """Give every training sample the ``kind`` physics prior (sim.prior), solved on the scene's ``mesh`` (its own
     when ""), along each sequence from its frame 0."""
     # With --symmetry each sample's prior is turned with it (learn.symmetry): the priors are functions of the pose
     # on the scene's mesh, so on a symmetric mesh the prior of a turned pose is the turned prior (knife_torus's edge
     # prior at full resolution, settled rest, modal compliance: to 5e-4 of its norm; exactly at ci).
     prior = physics_prior(kind, scene, dataset.sequences[0].object_positions[0], template.object_nodes, mesh=mesh,
-                          compliance=compliance)
+                          compliance=compliance, options=options)
     dataset.attach_priors(lambda seq: prior.rollout(seq.tool_poses), progress=progress)
 
 
@@ -372,7 +372,8 @@ def _setup(scene, data_dir: Path, out_ckpt: Path, variant: str, resume: bool, st
                                  template.num_tool_nodes, tool=scene.tool)
     if model.sim.config.prior_kind:
         _attach_prior(scene, dataset, template, model.sim.config.prior_kind, dist_.main,
-                      mesh=model.sim.config.prior_mesh, compliance=model.sim.config.prior_compliance)
+                      mesh=model.sim.config.prior_mesh, compliance=model.sim.config.prior_compliance,
+                      options=model.sim.config.prior_options)
     symmetry = None
     if cfg.symmetry:
         symmetry = node_symmetry(scene, template.rest.numpy())

@@ -36,7 +36,7 @@ class PriorWorkerError(RuntimeError):
 
 
 class PriorWorker:
-    """``sim.prior.physics_prior(kind, scene, rest_mesh, nodes, mesh, compliance)`` in a child process.
+    """``sim.prior.physics_prior(kind, scene, rest_mesh, nodes, mesh, compliance, options)`` in a child process.
 
     rest_mesh: [N_mesh,3] settled rest (m); nodes: [N] graph-node mesh ids. Returns once the child has started;
     the child builds its prior meanwhile (seconds: imports, the stiffness's factorisation), beside whatever the
@@ -44,12 +44,12 @@ class PriorWorker:
     such as a failed factorisation, are raised there as :class:`PriorWorkerError`)."""
 
     def __init__(self, kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str = "",
-                 compliance: str = ""):
+                 compliance: str = "", options: dict | None = None):
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._process = ctx.Process(target=serve, name=f"colgnn-prior-{kind}", daemon=True,
                                     args=(child, kind, scene, np.asarray(rest_mesh), np.asarray(nodes), mesh,
-                                          compliance))
+                                          compliance, dict(options or {})))
         self._process.start()
         child.close()
         self._pending = False
@@ -122,7 +122,7 @@ def _shut(conn: Connection, process) -> None:
 
 
 def serve(conn: Connection, kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str,
-          compliance: str) -> None:
+          compliance: str, options: dict | None = None) -> None:
     """The child's loop: build the prior, answer ``(state, pose_prev, pose)`` with ``("ok", (state, u))`` or
     ``("error", message)``, stop at ``None`` or when the parent's end closes."""
     from threadpoolctl import threadpool_limits
@@ -134,7 +134,7 @@ def serve(conn: Connection, kind: str, scene, rest_mesh: np.ndarray, nodes: np.n
         numba.set_num_threads(1)
         from colgnn_core.sim.prior import physics_prior
 
-        prior = physics_prior(kind, scene, rest_mesh, nodes, mesh=mesh, compliance=compliance)
+        prior = physics_prior(kind, scene, rest_mesh, nodes, mesh=mesh, compliance=compliance, options=options)
     except Exception as exc:  # noqa: BLE001 (any failure goes back to the parent as a message)
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return

@@ -113,7 +113,8 @@ class RawStepper:
         config = getattr(model, "config", None)
         kind = getattr(config, "prior_kind", None)
         self._prior_args = (kind, scene, self.rest_mesh, self.template.object_nodes,
-                            getattr(config, "prior_mesh", ""), getattr(config, "prior_compliance", ""))
+                            getattr(config, "prior_mesh", ""), getattr(config, "prior_compliance", ""),
+                            getattr(config, "prior_options", {}))
         beside = (kind is not None and prior_beside and not getattr(config, "prior_input", True)
                   and hasattr(model, "build_graph") and hasattr(model, "network"))
         self._prior_worker = PriorWorker(*self._prior_args) if beside else None
@@ -197,8 +198,8 @@ class RawStepper:
 
     def _local_prior(self):
         """The model's physics prior in this process (factorises the stiffness: seconds at full resolution)."""
-        kind, scene, rest_mesh, nodes, mesh, compliance = self._prior_args
-        return physics_prior(kind, scene, rest_mesh, nodes, mesh=mesh, compliance=compliance)
+        kind, scene, rest_mesh, nodes, mesh, compliance, options = self._prior_args
+        return physics_prior(kind, scene, rest_mesh, nodes, mesh=mesh, compliance=compliance, options=options)
 
     @property
     def prior_worker(self) -> PriorWorker | None:

@@ -21,6 +21,8 @@ graph's nodes only: the full torus's edge prior in about 2 ms instead of a 16 ms
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from colgnn_core.errors import InputError
@@ -32,9 +34,10 @@ from colgnn_core.sim.edge_prior import EdgePrior
 from colgnn_core.sim.rest_stiffness import RestStiffness
 from colgnn_core.sim.tip_prior import TipPrior, TipSidePrior
 
-__all__ = ["COMPLIANCES", "MODAL_PRIORS", "PRIORS", "physics_prior"]
+__all__ = ["COMPLIANCES", "MODAL_PRIORS", "OPTIONS", "PRIORS", "physics_prior"]
 
 PRIORS = {"tip": TipPrior, "tip_side": TipSidePrior, "contact": ContactPrior, "edge": EdgePrior}
+OPTIONS = {"tip": ("kappa",), "tip_side": ("kappa",), "contact": (), "edge": ()}  # each prior's own settings
 MODAL_PRIORS = ("contact", "edge")  # the priors whose rows sit on surface points, so the modal compliance serves
 COMPLIANCES = ("", "modal", "modal_response")   # "": exact K^-1 (sim.compliance.ExactCompliance); "modal":
                                                 # ModalCompliance (its dual; the response exact); "modal_response":
@@ -42,7 +45,8 @@ COMPLIANCES = ("", "modal", "modal_response")   # "": exact K^-1 (sim.compliance
 
 
 def physics_prior(kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, mesh: str = "",
-                  compliance: str = "") -> TipPrior | TipSidePrior | ContactPrior | EdgePrior | CoarsePrior:
+                  compliance: str = "", options: dict | None = None
+                  ) -> TipPrior | TipSidePrior | ContactPrior | EdgePrior | CoarsePrior:
     """The ``kind`` prior (a key of PRIORS) for ``scene`` at the settled rest ``rest_mesh`` [N_mesh,3] (m), giving the
     displacement of mesh vertices ``nodes`` [N]. Factorises the stiffness (seconds at full resolution).
 
@@ -53,9 +57,14 @@ def physics_prior(kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, me
     sim.compliance.cache_dir. "modal_response": the same, and the response from the modes and the near field too,
     at ``nodes`` and the surface only (the full torus's edge prior: about 2 ms instead of a 16 ms
     back-substitution; the interior's response reads 0).
+    options: the prior's own settings (OPTIONS), e.g. ``{"kappa": 1.0}`` for the tip priors' slide rule.
     """
     if kind not in PRIORS:
         raise InputError(f"unknown physics prior {kind!r}: choose one of {sorted(PRIORS)}")
+    options = dict(options or {})
+    if set(options) - set(OPTIONS[kind]):
+        raise InputError(f"the {kind!r} prior has no setting {sorted(set(options) - set(OPTIONS[kind]))}: it takes "
+                         f"{list(OPTIONS[kind]) or 'none'}")
     if compliance not in COMPLIANCES:
         raise InputError(f"unknown prior compliance {compliance!r}: choose one of {COMPLIANCES}")
     if compliance:
@@ -66,8 +75,9 @@ def physics_prior(kind: str, scene, rest_mesh: np.ndarray, nodes: np.ndarray, me
         read = np.union1d(nodes, np.unique(scene.object.faces)) if compliance == "modal_response" else None
         modal = ModalCompliance.for_surface(stiffness, scene.object.faces, cache=cache_dir(), read=read)
         return PRIORS[kind](scene, rest_mesh, nodes, stiffness=stiffness, compliance=modal, points="vertices")
+    make = partial(PRIORS[kind], **options)
     if not mesh or mesh == scene.resolution:
-        return PRIORS[kind](scene, rest_mesh, nodes)
+        return make(scene, rest_mesh, nodes)
     if mesh not in RESOLUTIONS:
         raise InputError(f"unknown prior mesh {mesh!r}: choose a resolution, one of {sorted(RESOLUTIONS)}")
-    return CoarsePrior(PRIORS[kind], load_scene(scene.name, mesh), scene, rest_mesh, nodes)
+    return CoarsePrior(make, load_scene(scene.name, mesh), scene, rest_mesh, nodes)

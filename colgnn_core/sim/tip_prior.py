@@ -45,7 +45,9 @@ __all__ = ["AHEAD_GAPS", "KAPPA", "SIDE_ROUNDS", "TipContact", "TipPrior", "TipS
 
 AHEAD_GAPS = 1.0  # TipSidePrior: the carried point is held this many solver gaps ahead of the tip
 SIDE_ROUNDS = 12  # TipSidePrior: active-set rounds per pose (the hard drag on cone_bunny: 5.4 on average)
-KAPPA = 2.0  # carried point at most KAPPA x tip depth from the axis point (chosen on training sequences)
+KAPPA = 2.0  # carried point at most KAPPA x tip depth from the axis point (chosen on 12 training sequences; on 74,
+             # 0.75-1 fits better as a prior alone, but a network on kappa 1 scored worse held out: docs/FIDELITY.md
+             # session 55; a model sets its own with ModelConfig.tip_kappa)
 
 
 @dataclass(frozen=True)
