@@ -122,7 +122,9 @@ def test_the_derived_network_adds_the_physics_prior_that_suits_the_tool():
     assert sharp["tip_prior"] is True and "contact_prior" not in sharp["ci"]          # the bunny's prior, everywhere
     for shape, params in (("sphere", {}), ("cylinder", {}), ("cone", {"tip_radius": 0.002})):
         smooth = derive_model(False, meshes, edge, shape, params)
-        assert smooth["ci"]["contact_prior"] is True and "contact_prior" not in smooth["full"], shape
+        assert smooth["ci"]["contact_prior"] is True and "prior_mesh" not in smooth["ci"], shape
+        # at full the same prior, solved on the ci mesh (the full mesh's exact prior costs seconds a first contact)
+        assert smooth["full"]["contact_prior"] is True and smooth["full"]["prior_mesh"] == "ci", shape
         assert "tip_prior" not in smooth
     blade = derive_model(False, meshes, edge, "blade", {})
     assert "tip_prior" not in blade and "contact_prior" not in blade["ci"]            # not measured: no prior
@@ -189,8 +191,10 @@ def test_scene_new_writes_a_derived_scene_that_every_command_finds():
     m = cfg["model"]
     assert m["quasi_static"] and m["order"] == 0 and (m["latent"], m["message_passing_steps"]) == (16, 2)
     assert 8 <= m["ci"]["coarse_nodes"] < m["full"]["coarse_nodes"] <= 128 and m["coarse_steps"] == 4
-    # on top of the contact prior at ci (a sphere), not at full (its first contact costs hundreds of solves there)
-    assert m["ci"]["contact_prior"] is True and "contact_prior" not in m["full"] and "tip_prior" not in m
+    # on top of the contact prior (a sphere); at full solved on the ci mesh (the full mesh's own first contact costs
+    # hundreds of solves)
+    assert m["ci"]["contact_prior"] is True and "tip_prior" not in m
+    assert m["full"]["contact_prior"] is True and m["full"]["prior_mesh"] == "ci"
     assert 0 < cfg["dhat"] <= 1e-3 * np.linalg.norm([0.1, 0.0667, 0.05]) + 1e-9
     # The truth's tool mesh follows the sphere to within dhat (the default 162 vertices at ci dipped 2.9 dhat).
     tool = make_tool("sphere", {k: cfg["tool"][k] for k in ("radius", "segments")}, "ci")

@@ -33,7 +33,7 @@ and how (L: the longest side, H: the height, T: the smallest side, e: a resoluti
 * material: the ``--material`` preset;
 * network (:func:`derive_model`): glued, a quasi-static 16/2/1 network with a coarse level (about 16 surface
   vertices a cluster) on top of a physics prior (a sharp cone: ``tip_prior``; a sphere, cylinder or rounded cone:
-  ``contact_prior`` at ``ci``); on the ground, the dynamic 32/5/1 network.
+  ``contact_prior``, at full resolution solved on the ``ci`` mesh); on the ground, the dynamic 32/5/1 network.
 """
 
 from __future__ import annotations
@@ -218,10 +218,10 @@ def derive_model(ground: bool, meshes: dict[str, TetMesh], edge: dict[str, float
     glued mat and banana, ``docs/FIDELITY.md``), so it gets the recipe that beats both trivial baselines there: a
     quasi-static 16/2/1 network (the shape as a function of the tool's pose, on the settled rest) with a coarse
     level of 4 steps that carries the contact across the object. Its output is added to a physics prior where one
-    was measured to help: a sharp cone's ``tip_prior`` (the bunny), and at ``ci`` a smooth tool's
-    ``contact_prior`` (the cow with a sphere; at full resolution its first contact needs hundreds of
-    back-substitutions, so it is not derived there). An object loose on the ground slides, so its shape depends on
-    the path: it keeps the dynamic 32/5/1 network (not measured on a user's scene yet)."""
+    was measured to help: a sharp cone's ``tip_prior`` (the bunny), and a smooth tool's ``contact_prior`` (the cow
+    with a sphere). At full resolution that prior is solved on the ``ci`` mesh (``prior_mesh``), because on the full
+    mesh its first contact needs hundreds of back-substitutions. An object loose on the ground slides, so its shape
+    depends on the path: it keeps the dynamic 32/5/1 network (not measured on a user's scene yet)."""
     common = {"surface_only": True, "contact_tests": ["vertex_face", "edge_edge"]}
     per_res = {res: {"world_radius": round(2.0 * edge[res], 6)} for res in ("ci", "full")}
     if ground:
@@ -233,6 +233,9 @@ def derive_model(ground: bool, meshes: dict[str, TetMesh], edge: dict[str, float
         prior = {"tip_prior": True}
     elif tool_shape in SMOOTH_TOOLS:
         per_res["ci"]["contact_prior"] = True
+        # At full resolution the exact prior's first contact costs seconds (hundreds of back-substitutions); solved
+        # on the ci mesh and carried onto the full graph's nodes (sim.coarse_prior) it costs about a millisecond.
+        per_res["full"].update(contact_prior=True, prior_mesh="ci")
     return {"latent": 16, "message_passing_steps": 2, "mlp_layers": 1, "order": 0, "quasi_static": True,
             "coarse_steps": 4, **prior, **common, **per_res}
 
@@ -357,6 +360,8 @@ COMMENTS = {
     "model.tip_prior": "the output is added to linear elasticity with the tip carrying a surface point "
                        "(sim/tip_prior.py)",
     "model.full.world_radius": "m, r_W = 2 x the full mean surface edge length",
+    "model.full.contact_prior": "the same prior, solved on the ci mesh (prior_mesh) and carried onto the full mesh",
+    "model.full.prior_mesh": "ci: the full mesh's exact prior costs seconds at a first contact (sim/coarse_prior.py)",
 }
 
 
