@@ -234,7 +234,7 @@ def derive_model(ground: bool, meshes: dict[str, TetMesh], edge: dict[str, float
     elif tool_shape in SMOOTH_TOOLS:
         per_res["ci"]["contact_prior"] = True
         # At full resolution the exact prior's first contact costs seconds (hundreds of back-substitutions); solved
-        # on the ci mesh and carried onto the full graph's nodes (sim.coarse_prior) it costs about a millisecond.
+        # on the ci mesh and carried onto the full graph's nodes (sim.coarse_prior) it costs milliseconds (cow: 10 ms).
         per_res["full"].update(contact_prior=True, prior_mesh="ci")
     return {"latent": 16, "message_passing_steps": 2, "mlp_layers": 1, "order": 0, "quasi_static": True,
             "coarse_steps": 4, **prior, **common, **per_res}
