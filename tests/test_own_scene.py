@@ -269,6 +269,7 @@ def test_fit_trains_evaluates_and_reports_within_its_budget():
     report = (d / "pebble-report.md").read_text()
     assert "| rest (nothing moves) | 1.000 ± 0.000 |" in report
     assert "| rest + correction (no network) |" in report and "IPC solver" in report
+    assert "| stage | planned min | used min (this run) | what |" in report and "| **total** |" in report
     plan = json.loads((d / "pebble-fit" / "ci" / "plan.json").read_text())
     assert plan["train_sequences"] >= 1 and plan["train_steps"] >= 30
     # Shares in 0.1 s steps: their float sum may read 120.00000000000001 for a 120 s budget.
@@ -312,6 +313,35 @@ def test_training_takes_the_time_that_the_data_left_unused():
     assert training_share(plan, 1500.0) == pytest.approx(1230.0)
     # data that overran its share does not take training's planned time away
     assert training_share(plan, 700.0) == pytest.approx(674.0)
+
+
+def test_no_share_reads_negative_zero():
+    from colgnn_core.evaluation.fit import rounded_shares
+
+    # session 56's 12-minute full fit: nothing left after the evaluation, and its report read "training -0.0 min"
+    shares = rounded_shares({"data": 0.0, "train": 0.0, "evaluate": 258.6}, 258.6 - 1e-12)
+    assert f"{shares['train'] / 60:.1f}" == "0.0" and f"{shares['data'] / 60:.1f}" == "0.0"
+
+
+def test_a_budget_that_the_first_sequences_overrun_is_called_too_small():
+    from colgnn_core.evaluation.fit import overrun_note
+
+    # session 56's 12-minute full cow fit: its first 5 sequences took 17.9 minutes on 2 workers
+    note = overrun_note(17.9 * 60, 12)
+    assert "17.9 min, 149% of the 12-minute budget" in note and "--minutes 90 or more" in note
+
+
+def test_the_report_gives_each_stages_plan_against_its_wall_time():
+    from colgnn_core.evaluation.fit import budget_table, fit_verdict, plan_budget
+
+    plan = plan_budget(30)  # 900 / 630 / 270 s
+    rows = budget_table(plan, {"data": 1200.0, "train": 300.0}, 1830.0, 5, 3, 412)
+    assert rows[2] == ("| data | 15.0 | 20.0 | 5 training + 3 held-out sequences of 40 frames (IPC ground truth) |")
+    assert rows[3] == "| training | 10.5 | 5.0 | 412 steps |"
+    assert rows[4].startswith("| evaluation | 4.5 | 0.0 |") and rows[5] == "| **total** | 30 | 30.5 | |"
+    assert fit_verdict(0.30, 0.94).startswith("clearly beats")
+    assert "**not clearly**" in fit_verdict(0.925, 0.968)
+    assert fit_verdict(1.05, 0.94).startswith("does **not** beat")
 
 
 def test_rounded_shares_add_up_to_the_budget():

@@ -61,8 +61,8 @@ MIN_MINUTES = 1.0
 def rounded_shares(seconds: dict[str, float], total: float, rest: str = "train") -> dict[str, float]:
     """``seconds`` (stage -> s) in 0.1 s steps, with stage ``rest`` taking what the others leave of ``total`` (s), so
     that the shares add up to ``total`` instead of exceeding it by the rounding (each rounded apart: up to 0.1 s)."""
-    out = {k: round(v, 1) for k, v in seconds.items() if k != rest}
-    out[rest] = round(total - sum(out.values()), 1)
+    out = {k: round(v, 1) + 0.0 for k, v in seconds.items() if k != rest}  # + 0.0: never a printed "-0.0"
+    out[rest] = round(total - sum(out.values()), 1) + 0.0
     return {k: out[k] for k in seconds}
 
 
@@ -102,6 +102,8 @@ class _Progress:
         self.bar = None
         self.stage = ""
         self.detail = ""
+        self.used: dict[str, float] = {}  # stage -> wall seconds spent on it in this run
+        self._since = self.t0
         self._stop = threading.Event()
         if enabled:
             from tqdm import tqdm  # lazy: an optional progress bar, only when asked for
@@ -125,8 +127,19 @@ class _Progress:
             self.bar.refresh()
 
     def set(self, stage: str, detail: str = "") -> None:
+        now = time.perf_counter()
+        if self.stage:
+            self.used[self.stage] = self.used.get(self.stage, 0.0) + now - self._since
+        self._since = now
         self.stage, self.detail = stage, detail
         self.refresh()
+
+    def stage_walls(self) -> dict[str, float]:
+        """Wall seconds per stage in this run so far, the current stage's included."""
+        walls = dict(self.used)
+        if self.stage:
+            walls[self.stage] = walls.get(self.stage, 0.0) + time.perf_counter() - self._since
+        return walls
 
     def note(self, detail: str) -> None:
         self.detail = detail
@@ -219,7 +232,7 @@ def fit(name: str, resolution: str = "ci", minutes: float = 30.0, jobs: int = 1,
         report = folder / f"{name}-report.md"
         with atomic_write(report, "w") as fh:
             fh.write(format_report(name, resolution, plan, metrics, speed, steps_done, wall, invocation,
-                                   (read_manifest(data) or {}), picture.name, model.name))
+                                   (read_manifest(data) or {}), picture.name, model.name, prog.stage_walls()))
         prog.set("done")
     finally:
         prog.close()
@@ -251,7 +264,11 @@ def _data_stage(name, resolution, data: Path, plan: FitPlan, jobs: int, dask, pr
         manifest = (read_manifest(data) or {})
         walls = [e.get("wall_s", 0.0) for e in manifest.get("sequences", {}).values()]
         per_seq = float(np.mean(walls)) if walls else time.perf_counter() - t0
+        first_wall, data_share = time.perf_counter() - t0, plan.shares_s["data"]
         _replan(plan, per_seq, 60.0 * plan.minutes - prog.elapsed())
+        if first_wall > data_share:
+            plan.notes.append(overrun_note(first_wall, plan.minutes))
+            _say(prog, plan.notes[-1], quiet)
         more = int(plan.shares_s["data"] / max(per_seq, 1e-3) * max(parallel, 1))
         plan.train_sequences = int(min(MAX_TRAIN_SEQUENCES, first + more))
         plan.notes.append(f"one sequence took {per_seq:.1f} s on a worker ({parallel} worker(s)): evaluation "
@@ -276,6 +293,19 @@ def _replan(plan: FitPlan, per_seq: float, left: float) -> None:
     plan.shares_s = rounded_shares({"data": DATA_FRACTION_AFTER_PROBE * rest,
                                     "train": (1 - DATA_FRACTION_AFTER_PROBE) * rest, "evaluate": evaluate_s},
                                    rest + evaluate_s)
+
+
+def overrun_note(first_wall_s: float, minutes: float) -> str:
+    """What the report says when the first sequences alone took more than the data's share of the budget: the
+    budget is too small for this scene and resolution, and training is cut to its minimum. The suggested budget is
+    a rule of thumb: five times the first round's wall time leaves the data about twice that round again and the
+    training about as long, after the evaluation's share."""
+    first_min = first_wall_s / 60.0
+    suggest = int(5 * np.ceil(first_min))  # 5x the first round, rounded up to whole 5 minutes
+    return (f"the first sequences alone took {first_min:.1f} min, {100 * first_min / minutes:.0f}% of the "
+            f"{minutes:g}-minute budget, more than its data share: the budget is too small for this scene at this "
+            f"resolution, and training is cut short. Run again with --minutes {suggest} or more: the sequences "
+            "simulated so far are kept")
 
 
 def _dask_workers_hint(address: str) -> int:
@@ -367,8 +397,32 @@ def _picture(ckpt: Path, scene, data: Path, out: Path) -> Path:
     return render_strip([gt, pred], ["ground truth (IPC)", "model + correction"], out, count=5)
 
 
+def fit_verdict(model_error: float, baseline_error: float) -> str:
+    """How the corrected model compares with the better trivial baseline (relative displacement errors): clearly
+    better means at most half its error, the bar that the project's accuracy targets use."""
+    if model_error <= 0.5 * baseline_error:
+        return "clearly beats both trivial baselines (at most half the error of the better one)"
+    if model_error < baseline_error:
+        return ("beats the trivial baselines, but **not clearly** (more than half the error of the better one): "
+                "give the fit a larger budget")
+    return "does **not** beat the trivial baselines: it is no better than predicting that nothing moves"
+
+
+def budget_table(plan: FitPlan, used_s: dict[str, float], wall: float, n_train: int, n_test: int,
+                 steps: int) -> list[str]:
+    """Markdown rows: each stage's planned share of the budget against the wall time it took in this run."""
+    rows = ["| stage | planned min | used min (this run) | what |", "|---|---:|---:|---|"]
+    what = {"data": f"{n_train} training + {n_test} held-out sequences of {plan.frames} frames (IPC ground truth)",
+            "train": f"{steps} steps", "evaluate": "held-out accuracy, collisions, speed, picture"}
+    for key, label in (("data", "data"), ("train", "training"), ("evaluate", "evaluation")):
+        rows.append(f"| {label} | {plan.shares_s[key] / 60:.1f} | {used_s.get(key, 0.0) / 60:.1f} | {what[key]} |")
+    rows.append(f"| **total** | {plan.minutes:g} | {wall / 60:.1f} | |")
+    return rows
+
+
 def format_report(name: str, resolution: str, plan: FitPlan, metrics: dict, speed: dict, steps: int, wall: float,
-                  invocation: str, manifest: dict, picture: str, model: str) -> str:
+                  invocation: str, manifest: dict, picture: str, model: str,
+                  used_s: dict[str, float] | None = None) -> str:
     """``<NAME>-report.md``: what was run, held-out accuracy against the trivial baselines, collisions, speed."""
     seqs = manifest.get("sequences", {})
     n_train = sum(1 for e in seqs.values() if e.get("split") == "train")
@@ -376,13 +430,11 @@ def format_report(name: str, resolution: str, plan: FitPlan, metrics: dict, spee
     rel = metrics["relative"]
     model_row = rel["corrected"]["all"]["mean"]
     best_base = min(rel["rest"]["all"]["mean"], rel["rest_correction"]["all"]["mean"])
-    verdict = ("beats both trivial baselines" if model_row < best_base else
-               "does **not** beat the trivial baselines: it is no better than predicting that nothing moves")
+    verdict = fit_verdict(model_row, best_base)
     lines = [f"# {name}: fitted model ({resolution})", "", provenance_line(invocation), "",
-             f"Budget {plan.minutes:g} min, used {wall / 60:.1f} min: data {plan.shares_s['data'] / 60:.1f} min "
-             f"({n_train} training + {n_test} held-out sequences of {plan.frames} frames, IPC ground truth), "
-             f"training {plan.shares_s['train'] / 60:.1f} min ({steps} steps), evaluation "
-             f"{plan.shares_s['evaluate'] / 60:.1f} min. " + " ".join(n[0].upper() + n[1:] + "." for n in plan.notes),
+             f"Budget {plan.minutes:g} min, used {wall / 60:.1f} min.", ""]
+    lines += budget_table(plan, used_s or {}, wall, n_train, n_test, steps)
+    lines += ["", " ".join(n[0].upper() + n[1:] + "." for n in plan.notes),
              "", f"Model: `{model}` (the scene's default model). On the held-out sequences the corrected model "
              f"{verdict} (relative displacement error {model_row:.3f} against {best_base:.3f}).", "",
              "## Accuracy on held-out sequences", ""]
