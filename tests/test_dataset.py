@@ -290,3 +290,26 @@ def test_a_partial_file_of_other_poses_is_not_continued(tmp_path):
     assert np.array_equal(simulate_sequence(scene, b, partial=partial).object_positions, got.object_positions)
     with pytest.raises(InputError, match="partial_every_s"):
         generate_dataset(SCENE, "ci", tmp_path, poses=b, progress=False, partial_every_s=-1)
+
+
+def worker_thread_counts(_: int) -> tuple[int, int, int, int]:
+    """In a worker: the thread counts of ipctk, numba, torch and the BLAS pools (the largest)."""
+    import ipctk
+    import numba
+    import torch
+    from threadpoolctl import threadpool_info
+
+    blas = max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+    return ipctk.get_num_threads(), numba.get_num_threads(), torch.get_num_threads(), blas
+
+
+def test_local_workers_share_the_cores_out():
+    import multiprocessing as mp
+
+    from colgnn_core.sim.dataset import limit_worker_threads, worker_threads
+
+    assert worker_threads(2, cpu_count=2) == 1 and worker_threads(3, cpu_count=2) == 1
+    assert worker_threads(2, cpu_count=16) == 8 and worker_threads(1, cpu_count=4) == 4
+    # a spawned worker as `generate --jobs` starts it: every pool the solver uses is down to its share
+    with mp.get_context("spawn").Pool(1, initializer=limit_worker_threads, initargs=(1,)) as pool:
+        assert pool.map(worker_thread_counts, [0]) == [(1, 1, 1, 1)]

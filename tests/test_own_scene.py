@@ -344,6 +344,42 @@ def test_the_report_gives_each_stages_plan_against_its_wall_time():
     assert fit_verdict(1.05, 0.94).startswith("does **not** beat")
 
 
+def test_data_time_left_by_fast_sequences_buys_whole_rounds_of_them():
+    from colgnn_core.evaluation.fit import top_up_sequences
+
+    # today's full cow fit: 2 workers, the latest round 190 and 150 s, 762 s of the data's share left
+    assert top_up_sequences([340.0, 190.0, 150.0], 2, 762.0, 200) == 8  # 4 rounds of 187 s
+    assert top_up_sequences([340.0, 190.0, 150.0], 2, 762.0, 5) == 5    # at most MAX_TRAIN_SEQUENCES in all
+    assert top_up_sequences([190.0, 150.0], 2, 180.0, 200) == 0         # no whole round fits
+    assert top_up_sequences([], 2, 1e4, 200) == 0
+
+
+def test_the_training_rate_is_measured_after_the_first_steps():
+    from colgnn_core.evaluation.fit import steady_rate
+
+    # 5 slow first steps (0.1 s each), then 20 steps/s: the rate over all 45 steps would read 13.8
+    stamps = [(5, 0.5), (10, 0.75), (15, 1.0), (20, 1.25), (25, 1.5), (30, 1.75), (35, 2.0), (40, 2.25), (45, 2.5)]
+    assert steady_rate(stamps, 15) == pytest.approx(20.0)
+    assert steady_rate(stamps[:3], 15) is None and steady_rate([], 15) is None
+
+
+def test_a_new_budget_keeps_the_data_and_trains_again(tmp_path):
+    import dataclasses
+
+    from colgnn_core.evaluation.fit import plan_budget, start_plan
+
+    ckpt = tmp_path / "train.pt"
+    plan, rebudgeted = start_plan(tmp_path, 30, ckpt)  # a first run: nothing recorded
+    assert not rebudgeted and plan.minutes == 30
+    recorded = dataclasses.replace(plan_budget(30), train_sequences=15, train_steps=36829)
+    (tmp_path / "plan.json").write_text(json.dumps(recorded.to_dict()))
+    ckpt.write_bytes(b"a trained model")
+    plan, rebudgeted = start_plan(tmp_path, 30, ckpt)  # the same budget resumes the recorded plan and model
+    assert not rebudgeted and plan == recorded and ckpt.is_file()
+    plan, rebudgeted = start_plan(tmp_path, 120, ckpt)  # a larger budget: a fresh plan, the model trained again
+    assert rebudgeted and plan.minutes == 120 and plan.train_sequences is None and not ckpt.exists()
+
+
 def test_rounded_shares_add_up_to_the_budget():
     from colgnn_core.evaluation.fit import rounded_shares
 

@@ -8,7 +8,8 @@ rest: the evaluation gets what it is estimated to need (at least 15%), and what 
 and to training. Within that:
 
 * **data**: the held-out test sequences and one training sequence per worker first; their measured cost sets how
-  many more training sequences fit in the rest of the data share (at most ``MAX_TRAIN_SEQUENCES``). Sequences are
+  many more training sequences fit in the rest of the data share (at most ``MAX_TRAIN_SEQUENCES``); when those run
+  faster, whole rounds more are simulated while the share lasts (:func:`top_up_sequences`). Sequences are
   simulated by local processes (``jobs``) or on a Dask cluster (``dask``, :mod:`colgnn_core.sim.cluster`);
 * **training**: it also takes what the data left unused (:func:`training_share`); a few steps of a throw-away
   run measure the step rate; the real run is planned to end within the training share (its learning-rate schedule
@@ -53,7 +54,8 @@ DATA_FRACTION_AFTER_PROBE = 0.55   # of what is left once the evaluation is prov
 BENCH_FRAMES = 12
 MODEL_STEP_S = 0.1                 # a ci model step with the correction, generous on a shared 2-core machine
 MAX_TRAIN_SEQUENCES = 200
-CALIBRATION_STEPS = 15
+CALIBRATION_STEPS = 45
+CALIBRATION_WARM_STEPS = 15        # left out of the measured rate: the first steps run slower (allocation, caches)
 MIN_TRAIN_STEPS = 30
 MIN_MINUTES = 1.0
 
@@ -179,6 +181,20 @@ def _load_plan(path: Path, fresh: FitPlan) -> FitPlan:
     return plan if plan.minutes == fresh.minutes else fresh
 
 
+def start_plan(work: Path, minutes: float, ckpt: Path) -> tuple[FitPlan, bool]:
+    """The run's plan: the recorded one for the same budget (a resumed run), else a fresh one. With a different
+    budget than the recorded one, the trained ``ckpt`` is removed: the new plan can add data and sets another step
+    count and learning-rate schedule, so resuming the old model would train neither plan. Returns (plan, whether a
+    recorded plan for another budget was replaced)."""
+    path = work / "plan.json"
+    fresh = plan_budget(minutes)
+    plan = _load_plan(path, fresh)
+    rebudgeted = plan is fresh and path.is_file()
+    if rebudgeted:
+        ckpt.unlink(missing_ok=True)
+    return plan, rebudgeted
+
+
 @dataclass
 class FitResult:
     name: str
@@ -204,7 +220,8 @@ def fit(name: str, resolution: str = "ci", minutes: float = 30.0, jobs: int = 1,
                          "made by `colgnn scene new`")
     folder = scene_file(name).parent
     work = ensure_writable_dir(folder / f"{name}-fit" / resolution)
-    plan = _load_plan(work / "plan.json", plan_budget(minutes))
+    ckpt = work / "train.pt"
+    plan, rebudgeted = start_plan(work, minutes, ckpt)
     invocation = invocation or f"colgnn fit {name} --resolution {resolution} --minutes {minutes:g}"
     prog = _Progress(name, 60.0 * plan.minutes, progress)
     quiet = not progress
@@ -213,7 +230,8 @@ def fit(name: str, resolution: str = "ci", minutes: float = 30.0, jobs: int = 1,
              f"{plan.shares_s['train'] / 60:.1f} min, evaluation {plan.shares_s['evaluate'] / 60:.1f} min; "
              f"{plan.test_sequences} held-out sequence(s), {plan.frames} frames each", quiet)
         data = work / "data"
-        ckpt = work / "train.pt"
+        if rebudgeted:
+            _say(prog, "a new budget: the sequences simulated so far are kept, and the model is trained again", quiet)
         if physics_changed(scene, work, ckpt):
             _say(prog, "the scene's physics changed since the last fit (material, support, friction, dt or tool): "
                  "its data is simulated and its model trained again", quiet)
@@ -244,9 +262,12 @@ def _data_stage(name, resolution, data: Path, plan: FitPlan, jobs: int, dask, pr
     """Test sequences plus one training sequence per worker, timed; then as many more as the data share allows."""
     parallel = int(jobs) if dask is None else _dask_workers_hint(dask)
     done = {"n": 0}
+    walls: list[float] = []  # wall seconds of the sequences simulated by this run, in order
 
     def on_entry(entry: dict) -> None:
         done["n"] += 1
+        if "wall_s" in entry:
+            walls.append(float(entry["wall_s"]))
         prog.note(f"{done['n']} sequence(s) simulated" + (f", {entry['file']} failed" if "error" in entry else ""))
 
     def run(train_sequences: int) -> None:
@@ -262,8 +283,8 @@ def _data_stage(name, resolution, data: Path, plan: FitPlan, jobs: int, dask, pr
         t0 = time.perf_counter()
         run(first)
         manifest = (read_manifest(data) or {})
-        walls = [e.get("wall_s", 0.0) for e in manifest.get("sequences", {}).values()]
-        per_seq = float(np.mean(walls)) if walls else time.perf_counter() - t0
+        first_walls = [e.get("wall_s", 0.0) for e in manifest.get("sequences", {}).values()]
+        per_seq = float(np.mean(first_walls)) if first_walls else time.perf_counter() - t0
         first_wall, data_share = time.perf_counter() - t0, plan.shares_s["data"]
         _replan(plan, per_seq, 60.0 * plan.minutes - prog.elapsed())
         if first_wall > data_share:
@@ -277,9 +298,37 @@ def _data_stage(name, resolution, data: Path, plan: FitPlan, jobs: int, dask, pr
                           f"{plan.shares_s['train']:.0f} s")
         _write_json(work / "plan.json", plan.to_dict())
         _say(prog, plan.notes[-1], quiet)
-    run(plan.train_sequences)
+        data_end = prog.elapsed() + plan.shares_s["data"]
+        run(plan.train_sequences)
+        # The first round's cost can overstate the rest (cold caches, a busy start, resumed sequences): sequences
+        # that finish early leave data time, which goes to more sequences while whole rounds still fit.
+        while (more := top_up_sequences(walls, parallel, data_end - prog.elapsed(),
+                                        MAX_TRAIN_SEQUENCES - plan.train_sequences)) > 0:
+            plan.train_sequences += more
+            plan.notes.append(f"the sequences ran faster than planned: {more} more in the "
+                              f"{data_end - prog.elapsed():.0f} s left of the data's share "
+                              f"({plan.train_sequences} training sequences in all)")
+            _write_json(work / "plan.json", plan.to_dict())
+            _say(prog, plan.notes[-1], quiet)
+            timed = len(walls)
+            run(plan.train_sequences)
+            if len(walls) == timed:  # nothing new was simulated (every seed failed): no point in asking again
+                break
+    else:
+        run(plan.train_sequences)
     if not list(data.glob("train_*.npz")) or not list(data.glob("test_*.npz")):
         raise SimulationError(f"no verified training or test sequence in {data}: see its manifest.json")
+
+
+def top_up_sequences(walls: list[float], workers: int, left_s: float, room: int) -> int:
+    """How many more training sequences fit in ``left_s`` seconds of the data's share: whole rounds of ``workers``
+    sequences, each round costing the mean of the latest round's walls (``walls``, in order) with a 10% margin;
+    at most ``room``. 0 when no round fits or nothing has been timed."""
+    if not walls or room <= 0:
+        return 0
+    per_seq = 1.1 * float(np.mean(walls[-max(1, workers):]))
+    rounds = int(left_s // per_seq) if per_seq > 0 else 0
+    return int(min(room, max(0, rounds) * max(1, workers)))
 
 
 def _replan(plan: FitPlan, per_seq: float, left: float) -> None:
@@ -347,6 +396,16 @@ def training_share(plan: FitPlan, left_s: float) -> float:
     return max(float(plan.shares_s["train"]), float(left_s) - float(plan.shares_s["evaluate"]))
 
 
+def steady_rate(stamps: list[tuple[int, float]], warm_steps: int) -> float | None:
+    """Training steps per second between the first and the last ``(step, perf_counter s)`` stamp at or after step
+    ``warm_steps``; None with fewer than two such stamps. The full cow's fit planned its training from 15 steps that
+    ran at 16 steps/s; the run itself went at 20, so it ended 13 minutes inside its share."""
+    steady = [(s, t) for s, t in stamps if s >= warm_steps]
+    if len(steady) < 2 or steady[-1][1] <= steady[0][1]:
+        return None
+    return (steady[-1][0] - steady[0][0]) / (steady[-1][1] - steady[0][1])
+
+
 def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, quiet: bool, work: Path) -> int:
     """Measure the step rate on a throw-away run, then train (or resume) to the planned step count."""
     share = plan.shares_s["train"]
@@ -364,11 +423,13 @@ def _train_stage(scene, data: Path, ckpt: Path, plan: FitPlan, prog: _Progress, 
         prog.set("train", "measuring the step rate")
         probe = work / "calibration.pt"
         cfg = TrainConfig(steps=CALIBRATION_STEPS, warmup_steps=3, log_every=5, checkpoint_every=10_000)
+        stamps: list[tuple[int, float]] = []
         t0 = time.perf_counter()
-        res = train(scene, data, probe, variant, config=cfg, progress=False, log_dir=False, threads=auto_threads())
+        res = train(scene, data, probe, variant, config=cfg, progress=False, log_dir=False, threads=auto_threads(),
+                    on_step=lambda s, n: stamps.append((s, time.perf_counter())))
         setup = time.perf_counter() - t0 - res.wall_s
         probe.unlink(missing_ok=True)
-        rate = res.step / max(res.wall_s, 1e-6)
+        rate = steady_rate(stamps, CALIBRATION_WARM_STEPS) or res.step / max(res.wall_s, 1e-6)
         plan.train_steps = int(max(MIN_TRAIN_STEPS, 0.9 * rate * max(share - (time.perf_counter() - t0) - setup, 0)))
         plan.notes.append(f"training ({variant} variant) runs {rate:.1f} steps/s: {plan.train_steps} steps planned")
         _write_json(work / "plan.json", plan.to_dict())

@@ -521,6 +521,35 @@ def _run_jobs(todo: list[_Job], jobs: int, record, progress: bool = False) -> No
             record(_run_job(job, progress))
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(processes=min(jobs, len(todo))) as pool:
+    workers = min(jobs, len(todo))
+    with ctx.Pool(processes=workers, initializer=limit_worker_threads, initargs=(worker_threads(workers),)) as pool:
         for entry in pool.imap_unordered(_run_job, todo):
             record(entry)
+
+
+def worker_threads(workers: int, cpu_count: int | None = None) -> int:
+    """Threads for each of ``workers`` local solver processes: the cores shared out, at least 1.
+
+    Why: each library in a solver step (ipctk's TBB broad phase, numba's parallel kernels, CHOLMOD's and BLAS's
+    OpenMP) otherwise starts a thread per core in every worker, and a parallel region then waits for a worker that
+    another process holds (docs/GROUND_TRUTH.md, session 57)."""
+    n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
+    return max(1, n // max(1, int(workers)))
+
+
+def limit_worker_threads(threads: int) -> None:
+    """A spawned worker's initializer: every thread pool that the solver uses gets ``threads``."""
+    import ipctk
+    import numba
+    import scipy.sparse.linalg  # noqa: F401 (loaded first: threadpoolctl limits only the libraries loaded)
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    try:
+        import cholespy  # noqa: F401 (CHOLMOD's OpenMP, when the optional factoriser is installed)
+    except ImportError:
+        pass
+    threadpool_limits(threads)  # every BLAS and OpenMP pool loaded by now
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    ipctk.set_num_threads(threads)
+    torch.set_num_threads(threads)
