@@ -48,6 +48,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from colgnn_core.collision.kernels import use_kernel_threads
 from colgnn_core.errors import InputError, SimulationError
 from colgnn_core.io import Sequence, atomic_write, ensure_writable_dir, load_sequence, save_sequence
 from colgnn_core.scenes import load_scene, sample_poses, split_seeds
@@ -531,8 +532,8 @@ def worker_threads(workers: int, cpu_count: int | None = None) -> int:
     """Threads for each of ``workers`` local solver processes: the cores shared out, at least 1.
 
     Why: each library in a solver step (ipctk's TBB broad phase, numba's parallel kernels, CHOLMOD's and BLAS's
-    OpenMP) otherwise starts a thread per core in every worker, and a parallel region then waits for a worker that
-    another process holds (docs/GROUND_TRUTH.md, session 57)."""
+    OpenMP) otherwise starts a thread per core in every worker; numpy's OpenBLAS threads spin after each call and
+    take a core from the other worker (docs/GROUND_TRUTH.md, session 57)."""
     n = int(cpu_count if cpu_count is not None else (os.cpu_count() or 1))
     return max(1, n // max(1, int(workers)))
 
@@ -540,7 +541,6 @@ def worker_threads(workers: int, cpu_count: int | None = None) -> int:
 def limit_worker_threads(threads: int) -> None:
     """A spawned worker's initializer: every thread pool that the solver uses gets ``threads``."""
     import ipctk
-    import numba
     import scipy.sparse.linalg  # noqa: F401 (loaded first: threadpoolctl limits only the libraries loaded)
     import torch
     from threadpoolctl import threadpool_limits
@@ -550,6 +550,6 @@ def limit_worker_threads(threads: int) -> None:
     except ImportError:
         pass
     threadpool_limits(threads)  # every BLAS and OpenMP pool loaded by now
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    use_kernel_threads(threads)  # numba's parallel kernels
     ipctk.set_num_threads(threads)
     torch.set_num_threads(threads)
