@@ -17,7 +17,7 @@ from colgnn_core.errors import InputError
 from colgnn_core.evaluation.fit import physics_changed
 from colgnn_core.geometry.mesh_import import import_surface
 from colgnn_core.geometry.tetmesh import check_closed_surface
-from colgnn_core.geometry.tools import facet_depth, make_tool
+from colgnn_core.geometry.tools import facet_depth, facet_tilt, make_tool
 from colgnn_core.scenes import load_scene
 from colgnn_core.scenes.custom import parse_material, parse_tool
 from colgnn_core.scenes.scene import build_scene
@@ -196,9 +196,10 @@ def test_scene_new_writes_a_derived_scene_that_every_command_finds():
     assert m["ci"]["contact_prior"] is True and "tip_prior" not in m
     assert m["full"]["contact_prior"] is True and m["full"]["prior_mesh"] == "ci"
     assert 0 < cfg["dhat"] <= 1e-3 * np.linalg.norm([0.1, 0.0667, 0.05]) + 1e-9
-    # The truth's tool mesh follows the sphere to within dhat (the default 162 vertices at ci dipped 2.9 dhat).
+    # The truth's tool mesh follows the sphere to within dhat (the default 162 vertices at ci dipped 2.9 dhat), and
+    # its faces turn at most 2.5 degrees from the sphere's normal (642 vertices: 4.6).
     tool = make_tool("sphere", {k: cfg["tool"][k] for k in ("radius", "segments")}, "ci")
-    assert cfg["tool"]["segments"] >= 3 and facet_depth(tool) <= cfg["dhat"]
+    assert cfg["tool"]["segments"] >= 4 and facet_depth(tool) <= cfg["dhat"] and facet_tilt(tool) <= np.radians(2.5)
     listed = own.colgnn("scenes", "--json", "--resolution", "ci")
     assert listed.returncode == 0, listed.stderr
     rows = {r["name"]: r for r in json.loads(listed.stdout)}
@@ -313,6 +314,20 @@ def test_training_takes_the_time_that_the_data_left_unused():
     assert training_share(plan, 1500.0) == pytest.approx(1230.0)
     # data that overran its share does not take training's planned time away
     assert training_share(plan, 700.0) == pytest.approx(674.0)
+
+
+def test_the_held_out_set_grows_to_what_the_budget_affords():
+    from colgnn_core.evaluation.fit import MAX_TEST_SEQUENCES, held_out_sequences
+
+    # session 57's cow at ci, 30 minutes: 7.9 s a sequence on each of 2 workers, data 900 s, evaluation 270 s.
+    # Sixteen held-out sequences cost 63 s to simulate; 10% of the data share buys 22, the evaluation's share 15.
+    assert held_out_sequences(7.9, 2, 900.0, 270.0, 40, 3) == 15
+    assert held_out_sequences(7.9, 2, 9000.0, 2700.0, 40, 3) == MAX_TEST_SEQUENCES
+    # the full cow, 85 minutes: 339 s a sequence; one more held-out sequence would take 7% of the data share, and
+    # the fit keeps its three
+    assert held_out_sequences(338.8, 2, 2550.0, 765.0, 40, 3) == 3
+    # a tiny budget keeps its single sequence
+    assert held_out_sequences(2.0, 1, 90.0, 27.0, 24, 1) == 1
 
 
 def test_no_share_reads_negative_zero():

@@ -227,6 +227,25 @@ def test_facet_depth_is_the_chord_sagitta_and_mesh_density_bounds_it():
     assert mesh_density("sphere", {"radius": 1.0}, 0.1, "ci") == 2 and mesh_density("sphere", {"radius": 1.0}, 0.1) == 3
 
 
+def test_facet_tilt_halves_with_each_subdivision_and_mesh_density_bounds_it():
+    from colgnn_core.geometry.tools import facet_tilt
+
+    # A cylinder of n segments: a side face's normal points at its middle, pi/n from the radial normal at its edges
+    # (measured 10% inside the face: a little less).
+    cyl = make_tool("cylinder", {"radius": 0.02, "height": 0.05, "segments": 16}, "ci")
+    assert np.degrees(facet_tilt(cyl)) == pytest.approx(0.9 * 180 / 16, rel=0.03)
+    assert facet_tilt(make_tool("blade", {"length": 0.05, "height": 0.02, "thickness": 0.002, "bevel": 0.005})) < 1e-6  # arccos near 1
+    # The icosphere: 9.2, 4.6 and 2.3 degrees at 2, 3 and 4 subdivisions, whatever the radius.
+    tilts = [np.degrees(facet_tilt(make_tool("sphere", {"radius": r, "segments": s}, "ci")))
+             for r, s in ((1.0, 2), (0.018, 3), (1.0, 4))]
+    assert tilts == pytest.approx([9.22, 4.64, 2.32], abs=0.02)
+    # The cow's sphere (18 mm, dhat 0.11 mm): within dhat at 3 subdivisions, within 2.5 degrees only at 4.
+    assert mesh_density("sphere", {"radius": 0.018}, 1.1e-4) == 3
+    assert mesh_density("sphere", {"radius": 0.018}, 1.1e-4, max_tilt=np.radians(2.5)) == 4
+    n = mesh_density("cone", {"radius": 0.01, "height": 0.04}, 1.0, max_tilt=np.radians(2.5))
+    assert np.degrees(facet_tilt(make_tool("cone", {"radius": 0.01, "height": 0.04, "segments": n}))) <= 2.5
+
+
 @pytest.mark.parametrize("key", list(PARAMS))
 def test_sdf_lies_above_its_tangent_planes(key):
     """The correction's sliding certificate rests on the SDF being convex with the analytic gradient a subgradient:

@@ -406,20 +406,51 @@ def facet_depth(tool: Tool) -> float:
     return max(0.0, -float(tool.sdf_local(points).min()))
 
 
-def mesh_density(shape: str, params: dict, max_depth: float, resolution: str = "full") -> int:
+FACET_TILT_POINT = 0.9  # barycentric weight of a face's vertex at the points where facet_tilt compares normals
+
+
+def facet_tilt(tool: Tool) -> float:
+    """Radians: the largest angle between a face's normal and the analytic shape's normal (the SDF's gradient) near
+    its corners (the points ``FACET_TILT_POINT`` of the way to each vertex, inside the face, so that a face at a
+    sharp rim is compared with its own side); 0 for a shape the mesh represents exactly (the blade)."""
+    tri = tool.vertices[tool.faces]                                                  # [G,3,3]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    w, o = FACET_TILT_POINT, 0.5 * (1.0 - FACET_TILT_POINT)
+    # A point of an exact flat face (a cap, the blade's side) lies on the analytic surface, where the gradient's sign
+    # is rounding noise: each point sits a thousandth of its face's shortest edge inside, along the face's normal.
+    inset = 1e-3 * np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).min(axis=1)[:, None] * normal
+    points = np.concatenate([w * tri[:, k] + o * (tri[:, (k + 1) % 3] + tri[:, (k + 2) % 3]) - inset
+                             for k in range(3)])
+    _, grad = tool.sdf_grad(points, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
+    cos = np.sum(np.tile(normal, (3, 1)) * grad, axis=1)
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)).max())
+
+
+def mesh_density(shape: str, params: dict, max_depth: float, resolution: str = "full",
+                 max_tilt: float = np.pi) -> int:
     """The coarsest tool mesh density (``segments``: icosphere subdivisions for the sphere, segments around for the
     others), no coarser than the resolution's default, whose facets dip at most ``max_depth`` (m) inside the
-    analytic shape (:func:`facet_depth`); at most ``_MAX_DENSITY``.
+    analytic shape (:func:`facet_depth`) and tilt at most ``max_tilt`` (radians) from its normal
+    (:func:`facet_tilt`); at most ``_MAX_DENSITY``.
 
     Why: the IPC ground truth presses with the tool's mesh, the model and the correction with its analytic SDF. Where
     the facets dip deeper than the barrier's reach dhat, the truth's contact force follows the facets (a 162-vertex
     sphere of radius 18 mm tilts it by up to 9 degrees, and the cow's ground truth changed by 0.12-0.68 relative
-    displacement between 162 and 642 vertices), so the model is asked to learn the mesh, not the tool. The cost is
-    small: 642 vertices cost the cow's solver about what 162 did; 2562 about 2.5 times as much.
+    displacement between 162 and 642 vertices), so the model is asked to learn the mesh, not the tool. The depth
+    alone is not enough on a ridge: the 642-vertex sphere, within dhat of the cow's sphere, still tilts the force by
+    4.6 degrees, and a press on the cow's spine then leans the body the other way (its sequence moved by 0.58
+    relative displacement from 642 to 40,962 tool vertices; 2,562 vertices, 2.3 degrees: 0.10). The cost: 642
+    vertices cost the cow's solver about what 162 did; 2562 about twice as much.
     """
     params = {k: v for k, v in params.items() if k != "segments"}
     n = _MESH_DENSITY[resolution][shape]
-    while n < _MAX_DENSITY[shape] and facet_depth(make_tool(shape, {**params, "segments": n}, resolution)) > max_depth:
+
+    def coarse(n: int) -> bool:
+        tool = make_tool(shape, {**params, "segments": n}, resolution)
+        return facet_depth(tool) > max_depth or facet_tilt(tool) > max_tilt
+
+    while n < _MAX_DENSITY[shape] and coarse(n):
         n = n + 1 if shape == "sphere" else int(np.ceil(1.25 * n / 4.0)) * 4
     return min(n, _MAX_DENSITY[shape])
 
