@@ -427,30 +427,24 @@ def facet_tilt(tool: Tool) -> float:
     return float(np.arccos(np.clip(cos, -1.0, 1.0)).max())
 
 
-def mesh_density(shape: str, params: dict, max_depth: float, resolution: str = "full",
-                 max_tilt: float = np.pi) -> int:
+def mesh_density(shape: str, params: dict, max_depth: float, resolution: str = "full") -> int:
     """The coarsest tool mesh density (``segments``: icosphere subdivisions for the sphere, segments around for the
     others), no coarser than the resolution's default, whose facets dip at most ``max_depth`` (m) inside the
-    analytic shape (:func:`facet_depth`) and tilt at most ``max_tilt`` (radians) from its normal
-    (:func:`facet_tilt`); at most ``_MAX_DENSITY``.
+    analytic shape (:func:`facet_depth`); at most ``_MAX_DENSITY``.
 
     Why: the IPC ground truth presses with the tool's mesh, the model and the correction with its analytic SDF. Where
     the facets dip deeper than the barrier's reach dhat, the truth's contact force follows the facets (a 162-vertex
     sphere of radius 18 mm tilts it by up to 9 degrees, and the cow's ground truth changed by 0.12-0.68 relative
     displacement between 162 and 642 vertices), so the model is asked to learn the mesh, not the tool. The depth
-    alone is not enough on a ridge: the 642-vertex sphere, within dhat of the cow's sphere, still tilts the force by
-    4.6 degrees, and a press on the cow's spine then leans the body the other way (its sequence moved by 0.58
-    relative displacement from 642 to 40,962 tool vertices; 2,562 vertices, 2.3 degrees: 0.10). The cost: 642
-    vertices cost the cow's solver about what 162 did; 2562 about twice as much.
+    is not the whole story on a ridge: the 642-vertex sphere, within dhat of the cow's sphere, still turns the force
+    by up to 4.6 degrees (:func:`facet_tilt`), and a press on the cow's spine then leans the body the other way (the
+    sequence moved by 0.58 relative displacement from 642 to 40,962 tool vertices; 2,562 vertices, 2.3 degrees:
+    0.10). A finer mesh costs the solver 1.7 times as much a sequence at 2,562 vertices, and the network 1.5 times as
+    much a step (the graph carries every tool vertex), which a 30-minute fit could not afford (session 58).
     """
     params = {k: v for k, v in params.items() if k != "segments"}
     n = _MESH_DENSITY[resolution][shape]
-
-    def coarse(n: int) -> bool:
-        tool = make_tool(shape, {**params, "segments": n}, resolution)
-        return facet_depth(tool) > max_depth or facet_tilt(tool) > max_tilt
-
-    while n < _MAX_DENSITY[shape] and coarse(n):
+    while n < _MAX_DENSITY[shape] and facet_depth(make_tool(shape, {**params, "segments": n}, resolution)) > max_depth:
         n = n + 1 if shape == "sphere" else int(np.ceil(1.25 * n / 4.0)) * 4
     return min(n, _MAX_DENSITY[shape])
 
