@@ -516,8 +516,7 @@ def format_summary(new: NewScene) -> str:
                        if k not in ("shape", "rest_orientation", "rest_clearance", "segments"))
     if "segments" in t:
         unit = "subdivisions" if t["shape"] == "sphere" else "segments"
-        solver_tool = make_tool(t["shape"], {k: v for k, v in t.items()
-                                             if k not in ("shape", "rest_orientation", "rest_clearance")})
+        solver_tool = new.scene.tool  # the TOML's segments: the same mesh at both resolutions
         params += (f"; the solver's mesh {t['segments']} {unit}, its faces within "
                    f"{facet_depth(solver_tool) / c['dhat']:.2f} dhat of the {t['shape']} and turned up to "
                    f"{np.degrees(facet_tilt(solver_tool)):.1f} degrees from its normal")
