@@ -27,5 +27,7 @@ for path in sorted(folder.glob("*.npz")):
         np.savez_compressed(tmp, **seq)
         tmp.replace(path)
 manifest["scene"] = name
-(folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
+tmp = folder / "manifest.json.tmp"
+tmp.write_text(json.dumps(manifest, indent=1))
+tmp.replace(folder / "manifest.json")
 print("relabelled", len(list(folder.glob("*.npz"))), "files in", folder)
