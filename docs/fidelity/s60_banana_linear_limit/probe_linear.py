@@ -5,8 +5,8 @@ d = X_t - X_0 (relative displacement error over all vertices, and over the conta
 
 - inertia: |K^-1 f_inertia| / |d|, with f_inertia = M (X_t - 2 X_{t-1} + X_{t-2}) / dt^2, implicit Euler's
   inertial force (how far the frame is from quasi-static);
-- linear, true force: K^-1 (grad E(X_t) - grad E(X_0)), the linear response to the truth's own elastic force (the
-  best any linear-elastic prior can do, whatever its contact model);
+- linear, true force: K^-1 (grad E(X_t) - grad E(X_0)), the linear response to the truth's own elastic force
+  (whether linear elasticity describes the frame at all, given the right loads);
 - prior: the shipped contact prior (modal compliance, one constraint per surface vertex) at the frame's tool pose,
   and the same with one constraint per face (points="faces");
 - min J: the smallest tet volume ratio of the truth and of the prior's state (below 0: inverted).
