@@ -19,12 +19,16 @@ import pytest
 import torch
 
 from colgnn_core.collision.clearance import CLEARANCE
+from colgnn_core.collision.broad_phase import Surface
 from colgnn_core.collision.correction import (PUSH_RULES, RIGID, SLIDE, STAY, CollisionCorrector, certify_translating,
-                                              certify_triangles, merge_pushes, rigid_step, sliding_positions)
+                                              certify_triangles, flat_edges, in_vertex_cone, merge_pushes, rigid_step,
+                                              sliding_positions)
+from colgnn_core.collision.exact import self_intersects
 from colgnn_core.errors import InputError
 from colgnn_core.evaluation.measure import family_poses
 from colgnn_core.collision.clearance import ClearanceResult
 from colgnn_core.evaluation.stability import check_rollout, hard_cases
+from colgnn_core.geometry.tools import make_tool
 from colgnn_core.geometry.transforms import axis_angle_quat, quat_multiply
 from colgnn_core.learn.graph import template_from_scene
 from colgnn_core.scenes import load_scene
@@ -485,6 +489,69 @@ def test_a_crossing_in_and_out_within_the_step_is_resolved_where_it_crossed():
     assert res.vertex_face_before > 0 and not oracle_step_free(x0, raw, F, T0, T1, TF)
     assert not res.fallback and res.region == 0 and res.iterations <= 6, (res.iterations, res.region)
     assert oracle_step_free(x0, res.positions, F, T0, T1, TF)
+
+
+def _blade():
+    tool = make_tool("blade", {"length": 0.12, "height": 0.05, "thickness": 0.003, "bevel": 0.012}, "ci")
+    V = np.asarray(tool.vertices, dtype=np.float64)
+    return V, Surface.from_faces(tool.faces, len(V))
+
+
+def test_flat_edges_are_the_triangulation_edges_inside_a_blades_sides():
+    V, S = _blade()
+    flat = flat_edges(S, V)
+    a, b = V[S.edges[:, 0]], V[S.edges[:, 1]]
+    # The box's own edges (along a coordinate axis, on a face boundary) are features; a diagonal across a side's
+    # rectangle is not. Every flat edge's two faces share a normal.
+    G = S.faces
+    n = np.cross(V[G[:, 1]] - V[G[:, 0]], V[G[:, 2]] - V[G[:, 0]])
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    fa, fb = S.edge_faces.T
+    assert np.all(fb >= 0) and np.all(fa < fb)
+    for f in (fa, fb):  # both faces contain the edge's two vertices
+        for k in range(2):
+            assert np.all((G[f] == S.edges[:, k, None]).any(1))
+    assert flat.any() and not flat.all()
+    assert np.allclose(n[fa[flat]], n[fb[flat]], atol=1e-9)
+    assert np.all((n[fa[~flat]] * n[fb[~flat]]).sum(1) < 1 - 1e-6)
+    diagonal = (np.abs(a - b) > 1e-9).sum(1) >= 2
+    side = np.isclose(np.abs(a[:, 1]), 0.0015) & np.isclose(a[:, 1], b[:, 1]) & (np.minimum(a[:, 2], b[:, 2]) >= 0.012)
+    assert np.all(flat[diagonal & side])
+
+
+def test_in_vertex_cone_keeps_outward_directions_and_replaces_the_rest_by_the_mean_normal():
+    V, S = _blade()
+    G = S.faces
+    n = np.cross(V[G[:, 1]] - V[G[:, 0]], V[G[:, 2]] - V[G[:, 0]])
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    mid_edge = int(np.argmin(np.abs(V[:, 0]) + 10 * np.abs(V[:, 2]) + 10 * np.abs(V[:, 1])))  # on the cutting edge
+    assert abs(V[mid_edge, 2]) < 1e-12 and abs(V[mid_edge, 1]) < 1e-12
+    down, along, side = np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    d = np.stack([down, along, side])
+    out = in_vertex_cone(d, np.full(3, mid_edge), V, S)
+    assert np.allclose(out[0], down)  # straight down leaves the cutting edge: kept
+    # Along the edge, or flat sideways (the bevel leans outward below the edge), is no way out: the mean normal of
+    # the vertex's faces, which points down and is symmetric about the blade's plane.
+    mean = n[(G == mid_edge).any(1)].sum(0)
+    mean /= np.linalg.norm(mean)
+    assert np.allclose(out[1], mean) and np.allclose(out[2], mean)
+    assert mean[2] < -0.99
+
+
+def test_a_blades_side_pushes_a_torus_wall_out_along_its_normal_not_along_the_blade():
+    """The shipped torus model on its held-out press and drag (issue 17), whose first 20 steps the network proposes
+    without a self-intersection. Before session 61 an object edge pushed out through a flat triangulation edge of
+    the blade's side moved along e x h, i.e. along the blade, by up to 14 mm: from step 12 the pushed wall crossed
+    the cut's opposite wall (29 of 61 published frames self-intersecting, 6 tool-pass fallbacks). A push from a
+    flat edge now leaves along the side's normal, and a face pierced by a tool vertex leaves through that vertex's
+    normal cone."""
+    pred = _shipped("knife_torus")
+    poses = _hard_cases("knife_torus")["press and drag"][:21]
+    pred.reset(tool_pose=poses[0])
+    for t, pose in enumerate(poses[1:], start=1):
+        res = pred.step(pose)
+        assert not res.fallback, t
+        assert not self_intersects(res.positions, pred.surface_faces), t
 
 
 # -- the published step (issue 19): a drag sweeping across the surface, and jumps split into model steps -------------

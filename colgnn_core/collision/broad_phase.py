@@ -93,6 +93,23 @@ class Surface:
         """CSR (offsets [n+1], face ids) of the faces incident to each vertex (cached)."""
         return self._csr("_vertex_faces", self.faces)
 
+    @property
+    def edge_faces(self) -> np.ndarray:
+        """[E,2] int64: the two faces sharing each edge, the lower face id first; -1 where an edge borders only one
+        (an open surface) (cached)."""
+        c = self.__dict__.get("_edge_faces")
+        if c is None:
+            owner = np.repeat(np.arange(len(self.faces)), 3)
+            e = self.face_edges.reshape(-1)
+            order = np.lexsort((owner, e))
+            e, owner = e[order], owner[order]
+            c = np.full((len(self.edges), 2), -1, dtype=np.int64)
+            first = np.r_[True, e[1:] != e[:-1]]
+            c[e[first], 0] = owner[first]
+            c[e[~first], 1] = owner[~first]
+            object.__setattr__(self, "_edge_faces", c)
+        return c
+
     def _csr(self, name: str, prims: np.ndarray):
         c = self.__dict__.get(name)
         if c is None:

@@ -35,6 +35,15 @@ Algorithm (all vectorised, numpy float64):
    face moves the face's vertices with minimal-norm barycentric weights
    (``w_k / sum w^2``, so the face point under the tool vertex moves by exactly the
    required amount); an object edge through a tool edge moves its end points likewise.
+   Two directions come from the tool instead (session 61). An object edge through a *flat* tool edge (its two
+   faces coplanar: a triangulation edge inside a blade's side, :func:`flat_edges`) leaves along that face's outward
+   normal: the pair's normal e x h is then any direction in the face's plane, and on the torus's held-out press and
+   drag it pushed edges through the blade's side along the blade by up to 14 mm, across the cut's opposite wall. A
+   face pierced by a tool vertex moves along its own normal only where that leaves through the vertex's normal cone
+   (:func:`in_vertex_cone`), else along the vertex's mean outward normal: on a torn or flipped proposal the face's
+   normal is arbitrary, and faces under the blade's edge were carried along it. Pairs that crossed in and out keep
+   the pair's normal where it crossed. On the torus's held-out press and drag and tilted slice, self-intersecting
+   published frames 29 -> 9 and 33 -> 13 of 61-62, tool-pass fallbacks 6 -> 1 and 6 -> 3.
    The amount brings the pair to ``margin`` on its start side at t+1 (plus
    ``margin * iteration`` on later passes). A pair that ends on its start side with
    the margin to spare crossed *in and out* during the step (a face the network
@@ -140,7 +149,8 @@ from colgnn_core.errors import InputError
 from colgnn_core.geometry.transforms import quat_to_matrix
 
 __all__ = ["CorrectionResult", "CollisionCorrector", "rigid_step", "certify_triangles", "certify_translating",
-           "sliding_positions", "MAX_ROTATION", "PROPOSED", "SLIDE", "STAY", "RIGID"]
+           "sliding_positions", "flat_edges", "in_vertex_cone", "merge_pushes", "MAX_ROTATION", "PROPOSED", "SLIDE",
+           "STAY", "RIGID"]
 
 DEFAULT_MARGIN_FRACTION = 0.5  # safety margin = this x the scene's dhat ...
 # ... but at least this (m). ipctk's Tight-Inclusion CCD (the test oracle) reports a pair as colliding when it comes
@@ -304,6 +314,7 @@ class CollisionCorrector:
         # (rims, corners); the slack covers rounding.
         self.tool_radius = float(tool.bounding_radius()) * (1 + 1e-6) + self.mesh_margin + 1e-9
         self.clearance = StepClearance(self.surface, self.tool_surface, bound)
+        self.tool_flat_edges = flat_edges(self.tool_surface, self.tool_local)
         self.fallbacks = 0                           # running count over this corrector's life
         self._extra_v: list = []                     # proximity pushes of the current pass
         self._extra_d: list = []
@@ -502,9 +513,13 @@ class CollisionCorrector:
                 w = np.where(io[:, None], _barycentric_clamped(_at(T0[j], T1[j], tc), a, b, c), w)
                 amount = np.where(io, a_io, amount)
             scale = amount / (w * w).sum(1)
+            # The face leaves the tool through the tool vertex's normal cone: the face's own normal is arbitrary on a
+            # torn or flipped proposal (module docstring, step 3).
+            d = -s[:, None] * n1
+            d[~io] = in_vertex_cone(d[~io], j[~io], T1, self.tool_surface)
             for k in range(3):
                 vids.append(f[:, k])
-                disps.append((-s * scale * w[:, k])[:, None] * n1)
+                disps.append((scale * w[:, k])[:, None] * d)
         ee = hits["ee"]
         if len(ee):  # object edge (u,v) vs tool edge (k,l): move (u,v) to its start side
             e, h = E[ee[:, 0]], H[ee[:, 1]]
@@ -532,11 +547,27 @@ class CollisionCorrector:
                 n1 = np.where(io[:, None], nt, n1)
                 alpha = np.where(io, at_t, alpha)
                 amount = np.where(io, a_io, amount)
+            # A flat tool edge (its two faces coplanar) is no feature of the tool: e x h is then any direction in the
+            # face's plane, e.g. along a blade for an object edge through its side, and the push slides the edge
+            # along the face. It leaves along the face's outward normal instead (module docstring, step 3).
+            d = s[:, None] * n1
+            flat = np.flatnonzero(self.tool_flat_edges[ee[:, 1]])
+            if len(flat):
+                g = G[self.tool_surface.edge_faces[ee[flat, 1], 0]]
+                tf = np.where(io[flat], tc[flat], 1.0)[:, None]  # where it crossed, or at t+1
+                a, b, c = ((1.0 - tf) * T0[g[:, k]] + tf * T1[g[:, k]] for k in range(3))
+                d[flat] = _unit_rows(np.cross(b - a, c - a))
+                # At t+1 the amount takes the edge's point the margin beyond the face's plane (in and out: the
+                # margin where it crossed, as above).
+                later = ~io[flat]
+                at1 = flat[later]
+                depth = ((u1[at1] + alpha[at1, None] * (v1[at1] - u1[at1]) - T1[g[later, 0]]) * d[at1]).sum(1)
+                amount[at1] = np.maximum(self.margin - depth, 0.0) + extra
             w = np.stack([1.0 - alpha, alpha], axis=1)
             scale = amount / (w * w).sum(1)
             for k in range(2):
                 vids.append(e[:, k])
-                disps.append((s * scale * w[:, k])[:, None] * n1)
+                disps.append((scale * w[:, k])[:, None] * d)
         if not vids:
             return np.zeros(0, np.int64), np.zeros((0, 3))
         vid = np.concatenate(vids)
@@ -798,6 +829,61 @@ class CollisionCorrector:
         return np.array([PROPOSED, SLIDE if sliding else STAY, RIGID], dtype=np.int8)[step]
 
 
+def flat_edges(surface: Surface, V: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Bool [E]: the edges of a closed ``surface`` (vertex positions V [N,3]) whose two faces are coplanar, the sine
+    of the angle between their normals at most ``tol`` (a triangulation edge inside a flat side)."""
+    G = surface.faces
+    a, b, c = (V[G[:, k]] for k in range(3))
+    n = _unit_rows(np.cross(b - a, c - a))
+    fa, fb = surface.edge_faces.T
+    ok = fb >= 0
+    s = np.sqrt((np.cross(n[fa], n[np.where(ok, fb, fa)]) ** 2).sum(1))
+    return ok & (s <= tol) & ((n[fa] * n[np.where(ok, fb, fa)]).sum(1) > 0)
+
+
+def in_vertex_cone(d: np.ndarray, verts: np.ndarray, T: np.ndarray, surface: Surface) -> np.ndarray:
+    """Unit directions [K,3]: each ``d`` [K,3] (unit) where it lies in the normal cone of its convex tool vertex
+    ``verts`` [K] (positions T [M,3] of ``surface``'s vertices), i.e. where it points away from every edge at the
+    vertex, d . (T[u] - T[v]) <= 0; else the vertex's mean outward normal (the normalised sum of its faces'
+    normals), which lies inside the cone. On a blade's cutting edge that is straight down; the nearer of the faces'
+    normals instead would push a face under the edge sideways, and the passes stop converging."""
+    ve_off, ve_ids = surface.vertex_edges
+    vf_off, vf_ids = surface.vertex_faces
+    return _vertex_cone_kernel(np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(verts, dtype=np.int64),
+                               np.ascontiguousarray(T, dtype=np.float64), ve_off, ve_ids, surface.edges, vf_off,
+                               vf_ids, surface.faces)
+
+
+@njit(cache=True)
+def _vertex_cone_kernel(d, verts, T, ve_off, ve_ids, edges, vf_off, vf_ids, faces):
+    out = d.copy()
+    for k in range(d.shape[0]):
+        v = verts[k]
+        inside = True
+        for q in range(ve_off[v], ve_off[v + 1]):
+            e = ve_ids[q]
+            u = edges[e, 0] if edges[e, 1] == v else edges[e, 1]
+            w0, w1, w2 = T[u, 0] - T[v, 0], T[u, 1] - T[v, 1], T[u, 2] - T[v, 2]
+            if d[k, 0] * w0 + d[k, 1] * w1 + d[k, 2] * w2 > 1e-9 * math.sqrt(w0 * w0 + w1 * w1 + w2 * w2):
+                inside = False
+                break
+        if inside:
+            continue
+        m0 = m1 = m2 = 0.0
+        for q in range(vf_off[v], vf_off[v + 1]):
+            a, b, c = faces[vf_ids[q], 0], faces[vf_ids[q], 1], faces[vf_ids[q], 2]
+            p0, p1, p2 = T[b, 0] - T[a, 0], T[b, 1] - T[a, 1], T[b, 2] - T[a, 2]
+            r0, r1, r2 = T[c, 0] - T[a, 0], T[c, 1] - T[a, 1], T[c, 2] - T[a, 2]
+            n0, n1, n2 = p1 * r2 - p2 * r1, p2 * r0 - p0 * r2, p0 * r1 - p1 * r0
+            ln = max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), 1e-300)
+            m0 += n0 / ln
+            m1 += n1 / ln
+            m2 += n2 / ln
+        lm = max(math.sqrt(m0 * m0 + m1 * m1 + m2 * m2), 1e-300)
+        out[k, 0], out[k, 1], out[k, 2] = m0 / lm, m1 / lm, m2 / lm
+    return out
+
+
 def merge_pushes(vid: np.ndarray, disp: np.ndarray, rule: str = "mean") -> tuple[np.ndarray, np.ndarray]:
     """One displacement per vertex from several: (sorted unique vertex ids [K], displacements [K,3] m) from the
     pushes ``disp`` [P,3] (m) on vertices ``vid`` [P]. ``mean``: their average; ``largest``: the one of largest
@@ -865,6 +951,11 @@ def _barycentric_clamped_kernel(p, a, b, c):
     for i in range(p.shape[0]):
         w[i, 0], w[i, 1], w[i, 2] = barycentric_clamped(row3(p, i), row3(a, i), row3(b, i), row3(c, i))
     return w
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    """The rows of ``v`` [K,3] scaled to unit length (zero rows stay zero)."""
+    return v / np.maximum(np.sqrt((v * v).sum(1)), 1e-300)[:, None]
 
 
 def _rows(*arrays):
