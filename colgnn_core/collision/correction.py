@@ -583,9 +583,6 @@ class CollisionCorrector:
         F, E = self.surface.faces, self.surface.edges
         G, H = self.tool_surface.faces, self.tool_surface.edges
         vids, disps = [], []
-        def unit(v):
-            return v / np.maximum(np.sqrt((v * v).sum(1)), 1e-300)[:, None]
-
         for kind in ("vf", "fv", "ee"):
             pairs = getattr(cl, kind)
             if len(pairs) == 0:
@@ -597,7 +594,7 @@ class CollisionCorrector:
                 p = _at(x0[i], x1[i], t)
                 a, b, c = (_at(T0[g[:, k]], T1[g[:, k]], t) for k in range(3))
                 w = _closest_barycentric(p, a, b, c)
-                n = unit(p - (w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c))
+                n = _unit_rows(p - (w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c))
                 vids.append(i)
                 disps.append(amount[:, None] * n)
                 continue
@@ -606,14 +603,14 @@ class CollisionCorrector:
                 p = _at(T0[j], T1[j], t)
                 a, b, c = (_at(x0[f[:, k]], x1[f[:, k]], t) for k in range(3))
                 w = _closest_barycentric(p, a, b, c)
-                n = unit(w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c - p)
+                n = _unit_rows(w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c - p)
                 ids = f
             else:  # object edge vs tool edge
                 e, h = E[pairs[:, 0]], H[pairs[:, 1]]
                 u, v = _at(x0[e[:, 0]], x1[e[:, 0]], t), _at(x0[e[:, 1]], x1[e[:, 1]], t)
                 k_, l_ = _at(T0[h[:, 0]], T1[h[:, 0]], t), _at(T0[h[:, 1]], T1[h[:, 1]], t)
                 alpha, beta = _segment_params(u, v, k_, l_)
-                n = unit(u + alpha[:, None] * (v - u) - (k_ + beta[:, None] * (l_ - k_)))
+                n = _unit_rows(u + alpha[:, None] * (v - u) - (k_ + beta[:, None] * (l_ - k_)))
                 w = np.stack([1.0 - alpha, alpha], axis=1)
                 ids = e
             scale = amount / (w * w).sum(1)
